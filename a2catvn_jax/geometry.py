@@ -11,6 +11,7 @@ The renderer groups geoms into three intersection families: boxes, ellipsoids
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -18,13 +19,13 @@ from flax import struct
 
 from a2catvn_jax.scenes.spec import CLASS_NAMES, class_of_name
 
-FAMILIES = ("box", "ell", "cap")
-_FAMILY_OF_TYPE = {
-    int(mujoco.mjtGeom.mjGEOM_BOX): "box",
-    int(mujoco.mjtGeom.mjGEOM_SPHERE): "ell",
-    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ell",
-    int(mujoco.mjtGeom.mjGEOM_CAPSULE): "cap",
-}
+# Intersection families: world-aligned boxes (a box whose rotation permutes the world
+# axes is one), oriented boxes, ellipsoids (spheres included) and capsules.
+FAMILIES = ("abox", "obox", "ell", "cap")
+_BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
+_SPHERE = int(mujoco.mjtGeom.mjGEOM_SPHERE)
+_CAPSULE = int(mujoco.mjtGeom.mjGEOM_CAPSULE)
+_ELLIPSOID = int(mujoco.mjtGeom.mjGEOM_ELLIPSOID)
 
 # Surface patterns used by the shader, chosen per semantic class.
 PATTERN_PLAIN, PATTERN_CHECKER, PATTERN_STRIPES, PATTERN_PLANKS = 0, 1, 2, 3
@@ -41,53 +42,55 @@ _PATTERN_OF_CLASS = {
 
 
 @struct.dataclass
+class Family:
+    """N geoms of one intersection family (with a leading axis S when batched).
+
+    pos [N, 3] world centre; rot [N, 3, 3] world-from-local rotation (identity for
+    world-aligned boxes); size [N, 3] (box half-sizes along its own axes, or along the
+    world axes for "abox"; ellipsoid radii; capsule (radius, half-length, 0));
+    gid [N] MuJoCo geom id; valid [N] False for padding; fp [N, 4] world xy footprint
+    (xmin, ymin, xmax, ymax); occluder [N] (world-aligned boxes spanning floor to
+    ceiling of a closed scene; always False for other families).
+    """
+
+    pos: jnp.ndarray
+    rot: jnp.ndarray
+    size: jnp.ndarray
+    gid: jnp.ndarray
+    valid: jnp.ndarray
+    fp: jnp.ndarray
+    occluder: jnp.ndarray
+
+    @property
+    def count(self) -> int:
+        return self.valid.shape[-1]
+
+
+@struct.dataclass
 class Geometry:
     """Static geometry of one scene (or, with a leading axis S, of a batch).
 
-    Per family f in (box, ell, cap), N_f geoms:
-      {f}_pos [N_f, 3] world centre; {f}_rot [N_f, 3, 3] world-from-local rotation;
-      {f}_size [N_f, 3] (box half-sizes; ellipsoid radii; capsule (radius, half-length, 0));
-      {f}_gid [N_f] MuJoCo geom id; {f}_valid [N_f] False for padding;
-      {f}_fp [N_f, 4] world xy footprint bounds (xmin, ymin, xmax, ymax).
-    box_occluder [N_b]: axis-aligned boxes spanning floor to ceiling of a closed scene.
+    families: {name: Family} for name in FAMILIES.
     Per MuJoCo geom (G of them): rgb [G, 3] in [0, 1], cls [G] semantic class,
-      pattern [G] shader pattern, aabb [G, 6] (xmin, ymin, zmin, xmax, ymax, zmax).
+    pattern [G] shader pattern, aabb [G, 6] (xmin, ymin, zmin, xmax, ymax, zmax),
+    shape_table [G, 16]: world centre (3), world-from-local rotation (9), size (3) and
+    shape kind (0 box, 1 ellipsoid, 2 capsule), for normals at hit points.
     """
 
-    box_pos: jnp.ndarray
-    box_rot: jnp.ndarray
-    box_size: jnp.ndarray
-    box_gid: jnp.ndarray
-    box_valid: jnp.ndarray
-    box_fp: jnp.ndarray
-    box_occluder: jnp.ndarray
-    ell_pos: jnp.ndarray
-    ell_rot: jnp.ndarray
-    ell_size: jnp.ndarray
-    ell_gid: jnp.ndarray
-    ell_valid: jnp.ndarray
-    ell_fp: jnp.ndarray
-    cap_pos: jnp.ndarray
-    cap_rot: jnp.ndarray
-    cap_size: jnp.ndarray
-    cap_gid: jnp.ndarray
-    cap_valid: jnp.ndarray
-    cap_fp: jnp.ndarray
+    families: dict
+    shape_table: jnp.ndarray
     rgb: jnp.ndarray
     cls: jnp.ndarray
     pattern: jnp.ndarray
     aabb: jnp.ndarray
 
-    def family(self, f: str):
-        return tuple(getattr(self, f"{f}_{k}") for k in ("pos", "rot", "size", "gid", "valid", "fp"))
-
 
 def _world_aabb(gtype: int, pos, rot, size) -> np.ndarray:
-    if gtype == mujoco.mjtGeom.mjGEOM_BOX:
+    if gtype == _BOX:
         half = np.abs(rot) @ size
-    elif gtype == mujoco.mjtGeom.mjGEOM_SPHERE:
+    elif gtype == _SPHERE:
         half = np.full(3, size[0])
-    elif gtype == mujoco.mjtGeom.mjGEOM_ELLIPSOID:
+    elif gtype == _ELLIPSOID:
         half = np.sqrt((rot**2) @ (size**2))
     else:  # capsule along local z
         half = np.abs(rot[:, 2]) * size[1] + size[0]
@@ -101,64 +104,84 @@ def _visible(m: mujoco.MjModel, i: int) -> bool:
     return bool(alpha > 0)
 
 
-def scene_arrays(m: mujoco.MjModel, closed: bool, height: float) -> dict[str, np.ndarray]:
-    """Geometry arrays (numpy, unbatched) of one compiled scene."""
+def _is_axis_permutation(rot: np.ndarray) -> bool:
+    return bool(np.all(np.isclose(np.abs(rot), np.round(np.abs(rot)), atol=1e-9)))
+
+
+def _scene_geoms(m: mujoco.MjModel, closed: bool, height: float):
+    """Per-geom arrays and per-family member lists of one compiled scene."""
     d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
-    fam_idx = {f: [] for f in FAMILIES}
-    for i in range(m.ngeom):
-        t = int(m.geom_type[i])
-        if t not in _FAMILY_OF_TYPE:
-            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, i) or f"#{i}"
-            raise ValueError(
-                f"geom {name!r} has type {mujoco.mjtGeom(t).name}; the renderer supports "
-                "box, sphere, capsule and ellipsoid"
-            )
-        fam_idx[_FAMILY_OF_TYPE[t]].append(i)
-
     G = m.ngeom
-    aabb = np.zeros((G, 6))
-    rgb = np.zeros((G, 3))
-    cls = np.zeros(G, np.int32)
-    pattern = np.zeros(G, np.int32)
-    valid = np.zeros(G, bool)
+    per_geom = {
+        "rgb": np.zeros((G, 3)),
+        "cls": np.zeros(G, np.int32),
+        "pattern": np.zeros(G, np.int32),
+        "aabb": np.zeros((G, 6)),
+        "shape_table": np.zeros((G, 16)),
+    }
+    members = {f: [] for f in FAMILIES}
     for i in range(G):
-        rot = d.geom_xmat[i].reshape(3, 3)
-        aabb[i] = _world_aabb(int(m.geom_type[i]), d.geom_xpos[i], rot, m.geom_size[i])
-        mat = m.geom_matid[i]
-        rgb[i] = m.mat_rgba[mat, :3] if mat >= 0 else m.geom_rgba[i, :3]
+        t = int(m.geom_type[i])
         name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, i) or ""
-        valid[i] = _visible(m, i) and not name.startswith("pad_")
-        cls[i] = class_of_name(name) if valid[i] else 0
-        pattern[i] = _PATTERN_OF_CLASS.get(CLASS_NAMES[int(cls[i])], PATTERN_PLAIN)
+        if t not in (_BOX, _SPHERE, _CAPSULE, _ELLIPSOID):
+            raise ValueError(
+                f"geom {name or i!r} has type {mujoco.mjtGeom(t).name}; the renderer "
+                "supports box, sphere, capsule and ellipsoid"
+            )
+        pos = d.geom_xpos[i].copy()
+        rot = d.geom_xmat[i].reshape(3, 3).copy()
+        size = m.geom_size[i].copy()
+        aabb = _world_aabb(t, pos, rot, size)
+        mat = m.geom_matid[i]
+        valid = _visible(m, i) and not name.startswith("pad_")
+        cls = class_of_name(name) if valid else 0
+        per_geom["aabb"][i] = aabb
+        per_geom["rgb"][i] = m.mat_rgba[mat, :3] if mat >= 0 else m.geom_rgba[i, :3]
+        per_geom["cls"][i] = cls
+        per_geom["pattern"][i] = _PATTERN_OF_CLASS.get(CLASS_NAMES[cls], PATTERN_PLAIN)
+        if t == _BOX and _is_axis_permutation(rot):
+            fam, rot, size = "abox", np.eye(3), (aabb[3:] - aabb[:3]) / 2
+        elif t == _BOX:
+            fam = "obox"
+        elif t == _CAPSULE:
+            fam = "cap"
+        else:
+            fam = "ell"
+            if t == _SPHERE:
+                size = np.full(3, size[0])
+        # Exact 2D occluders of a closed scene: world-aligned boxes spanning the whole
+        # storey. A ray from inside the scene that crosses their footprint has hit
+        # something no farther away (them, or the floor/ceiling before leaving).
+        occluder = fam == "abox" and closed and valid and aabb[2] <= 1e-6 and aabb[5] >= height - 1e-6
+        kind = {"abox": 0, "obox": 0, "ell": 1, "cap": 2}[fam]
+        per_geom["shape_table"][i] = np.concatenate([pos if fam != "abox" else (aabb[:3] + aabb[3:]) / 2, rot.ravel(), size, [kind]])
+        members[fam].append((pos, rot, size, i, valid, aabb[[0, 1, 3, 4]], occluder))
+    return per_geom, members
 
-    out = {"rgb": rgb, "cls": cls, "pattern": pattern, "aabb": aabb}
-    for f, idx in fam_idx.items():
-        idx = np.asarray(idx, np.int64)
-        size = m.geom_size[idx].copy() if len(idx) else np.zeros((0, 3))
-        if f == "ell":
-            is_sphere = m.geom_type[idx] == mujoco.mjtGeom.mjGEOM_SPHERE
-            size[is_sphere] = size[is_sphere][:, :1]
-        out[f"{f}_pos"] = d.geom_xpos[idx].copy()
-        out[f"{f}_rot"] = d.geom_xmat[idx].reshape(-1, 3, 3).copy()
-        out[f"{f}_size"] = size
-        out[f"{f}_gid"] = idx.astype(np.int32)
-        out[f"{f}_valid"] = valid[idx]
-        out[f"{f}_fp"] = aabb[idx][:, [0, 1, 3, 4]]
-    # Exact 2D occluders: axis-aligned (in xy) boxes spanning the whole storey of a
-    # closed scene. Any ray from inside the scene that crosses their footprint has hit
-    # something no farther away (them, or the floor/ceiling before leaving the storey).
-    brot = out["box_rot"]
-    axis_aligned = np.all(np.isclose(np.abs(brot), np.round(np.abs(brot)), atol=1e-9), axis=(1, 2))
-    baabb = aabb[fam_idx["box"]] if fam_idx["box"] else np.zeros((0, 6))
-    spans = (baabb[:, 2] <= 1e-6) & (baabb[:, 5] >= height - 1e-6)
-    out["box_occluder"] = closed & axis_aligned & spans & out["box_valid"]
+
+def _pad_family(items: list, n: int) -> dict[str, np.ndarray]:
+    pad = (np.zeros(3), np.eye(3), np.zeros(3), -1, False, np.zeros(4), False)
+    items = items + [pad] * (n - len(items))
+    cols = list(zip(*items)) if items else [[]] * 7
+    keys = ("pos", "rot", "size", "gid", "valid", "fp", "occluder")
+    shapes = ((0, 3), (0, 3, 3), (0, 3), (0,), (0,), (0, 4), (0,))
+    out = {}
+    for k, col, shp in zip(keys, cols, shapes):
+        arr = np.asarray(col) if len(col) else np.zeros(shp)
+        out[k] = arr
+    out["gid"] = out["gid"].astype(np.int32)
+    out["valid"] = out["valid"].astype(bool)
+    out["occluder"] = out["occluder"].astype(bool)
     return out
 
 
 def pack(models: list[mujoco.MjModel], closed: list[bool], heights: list[float]) -> Geometry:
-    """Stack scenes sharing one geom layout into a batched `Geometry` (leading axis S)."""
-    per = [scene_arrays(m, c, h) for m, c, h in zip(models, closed, heights)]
+    """Stack scenes sharing one geom layout into a batched `Geometry` (leading axis S).
+
+    A family's size is the largest count over the scenes; shorter ones are padded with
+    invalid entries, so scenes may split their boxes differently between families.
+    """
     types0 = models[0].geom_type
     for k, m in enumerate(models[1:], 1):
         if m.ngeom != models[0].ngeom or not np.array_equal(m.geom_type, types0):
@@ -166,17 +189,20 @@ def pack(models: list[mujoco.MjModel], closed: list[bool], heights: list[float])
                 f"scene {k} has a different geom layout from scene 0; scenes batched "
                 "together must share one (pad them with scenes.mjcf.layout_of)"
             )
-    stacked = {}
-    for key in per[0]:
-        arr = np.stack([p[key] for p in per])
-        if arr.dtype == np.float64:
-            arr = arr.astype(np.float32)
-        stacked[key] = jnp.asarray(arr)
-    return Geometry(**stacked)
+    scenes = [_scene_geoms(m, c, h) for m, c, h in zip(models, closed, heights)]
+
+    def f32(a):
+        return jnp.asarray(a.astype(np.float32) if a.dtype == np.float64 else a)
+
+    families = {}
+    for f in FAMILIES:
+        n = max(len(members[f]) for _, members in scenes)
+        padded = [_pad_family(members[f], n) for _, members in scenes]
+        families[f] = Family(**{k: f32(np.stack([p[k] for p in padded])) for k in padded[0]})
+    per_geom = {k: f32(np.stack([pg[k] for pg, _ in scenes])) for k in scenes[0][0]}
+    return Geometry(families=families, **per_geom)
 
 
 def take(geometry: Geometry, index) -> Geometry:
-    """One scene of a batched Geometry (works on traced indices)."""
-    import jax
-
+    """Scene `index` of a batched Geometry (index may be traced, or an array of them)."""
     return jax.tree_util.tree_map(lambda a: a[index], geometry)

@@ -64,77 +64,99 @@ class Frame(NamedTuple):
 
 
 # ----------------------------------------------------------------------------------
-# Ray-primitive intersections. Origins are in the primitive's local frame and shared
-# by all rays (one camera), directions are per ray. Return distance or INF.
+# Ray-primitive intersections, written per vector component so that XLA fuses one
+# candidate's whole test into a single elementwise loop over the image. `p` holds one
+# candidate's camera-relative parameters (arrays broadcastable against the image, or
+# scalars), `r` the rays: directions (dx, dy, dz) and their inverses (ix, iy, iz).
 
 
 def _safe_inv(v):
     return 1.0 / jnp.where(jnp.abs(v) < 1e-12, jnp.where(v < 0, -1e-12, 1e-12), v)
 
 
-def _hit_box(l, v, size):
-    inv = _safe_inv(v)
-    t1 = (-size - l) * inv
-    t2 = (size - l) * inv
-    tn = jnp.max(jnp.minimum(t1, t2), axis=-1)
-    tf = jnp.min(jnp.maximum(t1, t2), axis=-1)
+def _slab(x1, x2, y1, y2, z1, z2):
+    tn = jnp.maximum(jnp.maximum(jnp.minimum(x1, x2), jnp.minimum(y1, y2)), jnp.minimum(z1, z2))
+    tf = jnp.minimum(jnp.minimum(jnp.maximum(x1, x2), jnp.maximum(y1, y2)), jnp.maximum(z1, z2))
     t = jnp.where(tn >= 0, tn, tf)
     return jnp.where((tn <= tf) & (tf >= 0), t, INF)
 
 
-def _hit_unit_sphere(l, v):
-    """First non-negative hit of l + t v with the unit sphere (numerically stable)."""
-    a = jnp.sum(v * v, -1)
-    tc = -jnp.sum(l * v, -1) / a
-    p = l + tc[..., None] * v
-    d2 = jnp.sum(p * p, -1)
+def _unit_sphere(lx, ly, lz, vx, vy, vz):
+    """First non-negative hit of l + t v with the unit sphere (stable form)."""
+    a = vx * vx + vy * vy + vz * vz
+    tc = -(lx * vx + ly * vy + lz * vz) / a
+    px, py, pz = lx + tc * vx, ly + tc * vy, lz + tc * vz
+    d2 = px * px + py * py + pz * pz
     dt = jnp.sqrt(jnp.maximum(1.0 - d2, 0.0) / a)
     t0, t1 = tc - dt, tc + dt
     t = jnp.where(t0 >= 0, t0, t1)
     return jnp.where((d2 <= 1.0) & (t >= 0), t, INF)
 
 
-def _hit_ellipsoid(l, v, size):
-    return _hit_unit_sphere(l / size, v / size)
+def _local(p, r):
+    """Ray directions in the candidate's frame: v_i = column i of its rotation . d."""
+    dx, dy, dz = r[:3]
+    return tuple(p[f"r0{i}"] * dx + p[f"r1{i}"] * dy + p[f"r2{i}"] * dz for i in range(3))
 
 
-def _hit_capsule(l, v, size):
-    r, h = size[..., 0], size[..., 1]
-    # Side: the infinite cylinder x^2 + y^2 = r^2, kept where |z| <= h.
-    lxy, vxy = l[..., :2], v[..., :2]
-    a = jnp.maximum(jnp.sum(vxy * vxy, -1), 1e-20)
-    tc = -jnp.sum(lxy * vxy, -1) / a
-    p = lxy + tc[..., None] * vxy
-    d2 = jnp.sum(p * p, -1)
-    dt = jnp.sqrt(jnp.maximum(r * r - d2, 0.0) / a)
-    side = INF
+def _hit_abox(p, r):
+    ix, iy, iz = r[3:]
+    return _slab(p["ax"] * ix, p["bx"] * ix, p["ay"] * iy, p["by"] * iy, p["az"] * iz, p["bz"] * iz)
+
+
+def _hit_obox(p, r):
+    v = _local(p, r)
+    inv = [_safe_inv(c) for c in v]
+    t = []
+    for i, c in enumerate("xyz"):
+        t += [(-p[f"s{c}"] - p[f"l{c}"]) * inv[i], (p[f"s{c}"] - p[f"l{c}"]) * inv[i]]
+    return _slab(*t)
+
+
+def _hit_ell(p, r):
+    # Rotation columns are pre-divided by the radii: the ellipsoid becomes a unit sphere.
+    return _unit_sphere(p["lx"], p["ly"], p["lz"], *_local(p, r))
+
+
+def _hit_cap(p, r):
+    vx, vy, vz = _local(p, r)
+    lx, ly, lz, rad, h = p["lx"], p["ly"], p["lz"], p["sx"], p["sy"]
+    # Side: the infinite cylinder x^2 + y^2 = rad^2, kept where |z| <= h.
+    a = jnp.maximum(vx * vx + vy * vy, 1e-20)
+    tc = -(lx * vx + ly * vy) / a
+    px, py = lx + tc * vx, ly + tc * vy
+    d2 = px * px + py * py
+    dt = jnp.sqrt(jnp.maximum(rad * rad - d2, 0.0) / a)
+    best = INF
     for ts in (tc - dt, tc + dt):
-        z = l[..., 2] + ts * v[..., 2]
-        ok = (d2 <= r * r) & (ts >= 0) & (jnp.abs(z) <= h)
-        side = jnp.minimum(side, jnp.where(ok, ts, INF))
-    # Caps: spheres of radius r at z = +-h.
-    rr = r[..., None]
-    caps = INF
-    for sgn in (-1.0, 1.0):
-        centre = jnp.stack([jnp.zeros_like(h), jnp.zeros_like(h), sgn * h], -1)
-        caps = jnp.minimum(caps, _hit_unit_sphere((l - centre) / rr, v / rr))
-    return jnp.minimum(side, caps)
+        ok = (d2 <= rad * rad) & (ts >= 0) & (jnp.abs(lz + ts * vz) <= h)
+        best = jnp.minimum(best, jnp.where(ok, ts, INF))
+    # Caps: spheres of radius rad at z = +-h.
+    inv_r = 1.0 / rad
+    for zc in (h, -h):
+        t = _unit_sphere(lx * inv_r, ly * inv_r, (lz - zc) * inv_r, vx * inv_r, vy * inv_r, vz * inv_r)
+        best = jnp.minimum(best, t)
+    return best
 
 
-_HIT = {"box": _hit_box, "ell": _hit_ellipsoid, "cap": _hit_capsule}
+_HIT = {"abox": _hit_abox, "obox": _hit_obox, "ell": _hit_ell, "cap": _hit_cap}
 
 
-def _normal(family, local_hit, size):
-    if family == "box":
-        q = jnp.abs(local_hit) / jnp.maximum(size, 1e-9)
-        axis = jnp.argmax(q, -1)
-        n = jax.nn.one_hot(axis, 3) * jnp.sign(local_hit)
-    elif family == "ell":
-        n = local_hit / jnp.maximum(size, 1e-9) ** 2
-    else:
-        z = jnp.clip(local_hit[..., 2], -size[..., 1], size[..., 1])
-        n = local_hit - jnp.stack([jnp.zeros_like(z), jnp.zeros_like(z), z], -1)
-    return n / jnp.maximum(jnp.linalg.norm(n, axis=-1, keepdims=True), 1e-9)
+def _prepare(f: str, pos, rot, size, cam_pos) -> dict:
+    """Camera-relative per-candidate parameters of family f; arrays [..., 3(,3)] in,
+    a dict of [...] arrays out."""
+    if f == "abox":
+        lo, hi = pos - size - cam_pos, pos + size - cam_pos
+        return {"ax": lo[..., 0], "ay": lo[..., 1], "az": lo[..., 2], "bx": hi[..., 0], "by": hi[..., 1], "bz": hi[..., 2]}
+    rel = cam_pos - pos
+    local = jnp.einsum("...ji,...j->...i", rot, rel)
+    if f == "ell":
+        rot = rot / size[..., None, :]
+        local = local / size
+    p = {f"r{j}{i}": rot[..., j, i] for j in range(3) for i in range(3)}
+    p.update({f"l{c}": local[..., i] for i, c in enumerate("xyz")})
+    p.update({f"s{c}": size[..., i] for i, c in enumerate("xyz")})
+    return p
 
 
 # ----------------------------------------------------------------------------------
@@ -203,27 +225,33 @@ def _occlusion_estimate(geom: Geometry, c, right, left):
 
     The nearest occluder along each wedge boundary, plus slack for corners between
     them. It is only an estimate; `render` verifies every ray against it."""
-    fp = geom.box_fp
-    occ = geom.box_occluder[None, :]
-    e_r = jnp.min(jnp.where(occ, _entry_2d(fp, c, right), INF), -1)
-    e_l = jnp.min(jnp.where(occ, _entry_2d(fp, c, left), INF), -1)
+    boxes = geom.families["abox"]
+    if boxes.count == 0:
+        return jnp.full(right.shape[:1], INF)
+    occ = boxes.occluder[None, :]
+    e_r = jnp.min(jnp.where(occ, _entry_2d(boxes.fp, c, right), INF), -1)
+    e_l = jnp.min(jnp.where(occ, _entry_2d(boxes.fp, c, left), INF), -1)
     far = jnp.maximum(e_r, e_l)
     return jnp.where(far < INF, far + _OCCLUSION_SLACK, INF)
 
 
-def _candidates(geom: Geometry, cam_pos, dirs, cap: int):
-    """Per family: (indices [W, K_f], valid [W, K_f]) and an overflow flag."""
+def _column_candidates(geom: Geometry, cam_pos, dirs, cap: int):
+    """Per family, the geoms each column must test.
+
+    Returns ({family: (indices [W, K_f], ok [W, K_f])}, far [W], overflow)."""
     c = cam_pos[:2]
     right, left = _column_wedges(dirs)
     far = _occlusion_estimate(geom, c, right, left)
     out, overflow = {}, jnp.bool_(False)
     for f in FAMILIES:
-        _, _, _, _, valid, fp = geom.family(f)
-        n = valid.shape[0]
+        fam = geom.families[f]
+        n = fam.count
+        if n == 0:
+            continue
         mask = (
-            _in_wedge(fp, c, right, left)
-            & (_footprint_distance(fp, c)[None, :] <= far[:, None] + _DIST_EPS)
-            & valid[None, :]
+            _in_wedge(fam.fp, c, right, left)
+            & (_footprint_distance(fam.fp, c)[None, :] <= far[:, None] + _DIST_EPS)
+            & fam.valid[None, :]
         )
         if n <= cap:
             out[f] = (jnp.broadcast_to(jnp.arange(n), mask.shape), mask)
@@ -235,93 +263,131 @@ def _candidates(geom: Geometry, cam_pos, dirs, cap: int):
     return out, far, overflow
 
 
-def _all_geoms(geom: Geometry, width: int):
-    out = {}
-    for f in FAMILIES:
-        valid = geom.family(f)[4]
-        n = valid.shape[0]
-        out[f] = (jnp.broadcast_to(jnp.arange(n), (width, n)), jnp.broadcast_to(valid, (width, n)))
-    return out
-
-
 # ----------------------------------------------------------------------------------
 # Tracing and shading.
 
 
-def _trace(geom: Geometry, cam_pos, dirs, cands):
-    """Nearest hit per ray. dirs [W, H, 3]; returns (t, family index, local index)."""
-    best_t = jnp.full(dirs.shape[:2], INF)
-    best_f = jnp.zeros(dirs.shape[:2], jnp.int32)
-    best_i = jnp.zeros(dirs.shape[:2], jnp.int32)
-    for fi, f in enumerate(FAMILIES):
-        idx, ok = cands[f]
-        if idx.shape[-1] == 0:
+def _nearest(f: str, params: dict, rays, carry):
+    """Loop over candidates, updating the nearest hit (t, geom id) per ray.
+
+    params: {name: [n, ...]} whose trailing shape broadcasts against the rays'.
+
+    The loop is always a real XLA while loop (at least two trips, no remainder): a
+    loop XLA unrolls away would let it fuse the whole intersection computation into
+    every consumer of the image (e.g. each shifted copy), recomputing it many times."""
+    n = params["ok"].shape[0]
+    unroll = 4 if n >= 8 else 1
+    padded = max(-(-n // unroll) * unroll, 2)
+    if padded != n:
+        params = {
+            k: jnp.concatenate([v, jnp.zeros((padded - n,) + v.shape[1:], v.dtype)]) for k, v in params.items()
+        }
+
+    def body(j, carry):
+        best, gid = carry
+        for u in range(unroll):
+            p = {name: a[j * unroll + u] for name, a in params.items()}
+            t = jnp.where(p["ok"], _HIT[f](p, rays), INF)
+            better = t < best
+            best, gid = jnp.where(better, t, best), jnp.where(better, p["gid"], gid)
+        return best, gid
+
+    return jax.lax.fori_loop(0, padded // unroll, body, carry)
+
+
+def _trace(geom: Geometry, cam_pos, dirs, cands=None):
+    """Nearest hit per ray of dirs [W, H, 3] among the per-column candidates `cands`
+    (from `_column_candidates`), or among all geoms when `cands` is None.
+
+    Returns (t, geom id), each [W, H]; t is INF and the id -1 where nothing is hit."""
+    dx, dy, dz = dirs[..., 0], dirs[..., 1], dirs[..., 2]
+    rays = (dx, dy, dz, _safe_inv(dx), _safe_inv(dy), _safe_inv(dz))
+    carry = (jnp.full(dx.shape, INF), jnp.full(dx.shape, -1, jnp.int32))
+    for f in FAMILIES:
+        fam = geom.families[f]
+        if fam.count == 0:
             continue
-        pos, rot, size, _, _, _ = geom.family(f)
-        pos, rot, size = pos[idx], rot[idx], size[idx]  # [W, K, ...]
-        l = jnp.einsum("wkji,wkj->wki", rot, cam_pos - pos)  # local origin
-        v = jnp.einsum("wkji,whj->whki", rot, dirs)  # local directions [W, H, K, 3]
-        t = _HIT[f](l[:, None], v, size[:, None])
-        t = jnp.where(ok[:, None, :], t, INF)
-        k = jnp.argmin(t, -1)
-        tk = jnp.min(t, -1)
-        better = tk < best_t
-        best_t = jnp.where(better, tk, best_t)
-        best_f = jnp.where(better, fi, best_f)
-        best_i = jnp.where(better, jnp.take_along_axis(idx, k, -1), best_i)
-    return best_t, best_f, best_i
+        if cands is None:
+            params = _prepare(f, fam.pos, fam.rot, fam.size, cam_pos)
+            params.update(ok=fam.valid, gid=fam.gid)
+            carry = _nearest(f, params, rays, carry)
+        else:
+            idx, ok = cands[f]  # [W, K]
+            params = _prepare(f, fam.pos[idx], fam.rot[idx], fam.size[idx], cam_pos)
+            params.update(ok=ok, gid=fam.gid[idx])
+            # Candidate-major with a broadcast axis for the rows: [K, W, 1].
+            params = {k: jnp.swapaxes(v, 0, 1)[..., None] for k, v in params.items()}
+            carry = _nearest(f, params, rays, carry)
+    return carry
 
 
 def _pattern_factor(pattern, p):
-    checker = (jnp.floor(p[..., 0] / 0.5) + jnp.floor(p[..., 1] / 0.5)) % 2
-    stripes = jnp.floor((p[..., 0] + p[..., 1]) / 0.25) % 2
-    planks = (p[..., 2] / 0.3) % 1.0 < 0.12
-    base = jnp.where(p[..., 2] < 0.1, 0.55, 1.0)  # dark skirting at the foot of surfaces
-    f = jnp.ones_like(p[..., 0])
+    """Brightness factor of procedural surface patterns at world points p = (x, y, z)."""
+    x, y, z = p
+    checker = (jnp.floor(x * 2.0) + jnp.floor(y * 2.0)) % 2  # 0.5 m tiles
+    stripes = jnp.floor((x + y) * 4.0) % 2
+    planks = (z / 0.3) % 1.0 < 0.12
+    skirting = jnp.where(z < 0.1, 0.55, 1.0)
+    f = jnp.ones_like(x)
     f = jnp.where(pattern == PATTERN_CHECKER, 0.8 + 0.2 * checker, f)
-    f = jnp.where(pattern == PATTERN_STRIPES, (0.9 + 0.1 * stripes) * base, f)
+    f = jnp.where(pattern == PATTERN_STRIPES, (0.9 + 0.1 * stripes) * skirting, f)
     f = jnp.where(pattern == PATTERN_PLANKS, jnp.where(planks, 0.7, 1.0), f)
     return f
 
 
-def _shade(geom: Geometry, cam_pos, dirs, t, fam, idx):
-    hit = t < INF
-    p = cam_pos + dirs * jnp.where(hit, t, 0.0)[..., None]
-    normal = jnp.zeros_like(dirs)
-    gid = jnp.full(t.shape, -1, jnp.int32)
-    for fi, f in enumerate(FAMILIES):
-        pos, rot, size, fgid, _, _ = geom.family(f)
-        if pos.shape[0] == 0:
-            continue
-        i = jnp.where(fam == fi, idx, 0)
-        r = rot[i]
-        local = jnp.einsum("...ji,...j->...i", r, p - pos[i])
-        n = jnp.einsum("...ij,...j->...i", r, _normal(f, local, size[i]))
-        sel = hit & (fam == fi)
-        normal = jnp.where(sel[..., None], n, normal)
-        gid = jnp.where(sel, fgid[i], gid)
+def _normals(geom: Geometry, p, gid):
+    """Unit outward surface normals (nx, ny, nz) at hit points p = (px, py, pz) on
+    geoms gid, all [...] arrays (kept per component: XLA vectorises those best)."""
     safe = jnp.maximum(gid, 0)
-    base = geom.rgb[safe] * _pattern_factor(geom.pattern[safe], p)[..., None]
+    col = lambda k: geom.shape_table[:, k][safe]  # noqa: E731
+    rel = [p[j] - col(j) for j in range(3)]
+    rot = [[col(3 + 3 * j + i) for i in range(3)] for j in range(3)]  # world-from-local
+    size = [col(12 + i) for i in range(3)]
+    kind = col(15)
+    lx, ly, lz = (sum(rot[j][i] * rel[j] for j in range(3)) for i in range(3))
+    # Box: the face whose slab the point lies on; ellipsoid: gradient; capsule: away
+    # from the axis segment.
+    qx, qy, qz = (jnp.abs(lx) / size[0], jnp.abs(ly) / size[1], jnp.abs(lz) / size[2])
+    on_x = (qx >= qy) & (qx >= qz)
+    on_y = ~on_x & (qy >= qz)
+    on_z = ~on_x & ~on_y
+    box = (on_x * jnp.sign(lx), on_y * jnp.sign(ly), on_z * jnp.sign(lz))
+    ell = (lx / (size[0] * size[0]), ly / (size[1] * size[1]), lz / (size[2] * size[2]))
+    cap = (lx, ly, lz - jnp.clip(lz, -size[1], size[1]))
+    local = [jnp.where(kind == 0, box[i], jnp.where(kind == 1, ell[i], cap[i])) for i in range(3)]
+    n = [sum(rot[j][i] * local[i] for i in range(3)) for j in range(3)]
+    inv = jax.lax.rsqrt(jnp.maximum(n[0] * n[0] + n[1] * n[1] + n[2] * n[2], 1e-18))
+    return tuple(c * inv for c in n)
+
+
+def _shade(geom: Geometry, cam_pos, dirs, t, gid):
+    """Colour, depth and class of each ray's nearest hit: [W, H, 3] uint8, [W, H], [W, H]."""
+    hit = gid >= 0
+    depth = jnp.where(hit, t, 0.0)
+    d = [dirs[..., j] for j in range(3)]
+    p = [cam_pos[j] + d[j] * depth for j in range(3)]
+    n = _normals(geom, p, gid)
+    safe = jnp.maximum(gid, 0)
+    factor = _pattern_factor(geom.pattern[safe], p)
     light = (
         0.45
-        + 0.35 * jnp.maximum(jnp.sum(normal * _LIGHT, -1), 0.0)
-        + 0.25 * jnp.abs(jnp.sum(normal * dirs, -1))
+        + 0.35 * jnp.maximum(sum(n[j] * float(_LIGHT[j]) for j in range(3)), 0.0)
+        + 0.25 * jnp.abs(sum(n[j] * d[j] for j in range(3)))
     )
-    rgb = jnp.clip(base * light[..., None], 0.0, 1.0)
-    rgb = jnp.where(hit[..., None], rgb, 0.0)
-    depth = jnp.where(hit, t, 0.0)
+    shade = jnp.where(hit, factor * light, 0.0)
+    rgb = jnp.stack([jnp.clip(geom.rgb[:, c][safe] * shade, 0.0, 1.0) for c in range(3)], -1)
     cls = jnp.where(hit, geom.cls[safe], 0)
-    return (rgb * 255.0 + 0.5).astype(jnp.uint8), depth, gid, cls
+    return (rgb * 255.0 + 0.5).astype(jnp.uint8), depth, cls
 
 
 def render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool = True) -> Frame:
     """Render one camera in one scene (unbatched Geometry). Images are [H, W]."""
     dirs = camera.column_ray_directions(yaw, tilt, spec.height, spec.width, spec.fovy)
     if culled and spec.candidates > 0:
-        cands, far, overflow = _candidates(geom, cam_pos, dirs, spec.candidates)
+        cands, far, overflow = _column_candidates(geom, cam_pos, dirs, spec.candidates)
     else:
-        cands, far, overflow = _all_geoms(geom, spec.width), None, jnp.bool_(False)
-    t, fam, idx = _trace(geom, cam_pos, dirs, cands)
+        cands, far, overflow = None, None, jnp.bool_(False)
+    t, gid = _trace(geom, cam_pos, dirs, cands)
     if far is not None:
         # Geoms were skipped only beyond `far`: a ray whose hit is no farther than that
         # (horizontally) has found its true first hit; any other ray makes the frame
@@ -329,7 +395,7 @@ def render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool = 
         reach = t * jnp.linalg.norm(dirs[..., :2], axis=-1)
         ok = (far[:, None] >= INF) | ((t < INF) & (reach <= far[:, None] + _DIST_EPS))
         overflow = overflow | ~jnp.all(ok)
-    rgb, depth, gid, cls = _shade(geom, cam_pos, dirs, t, fam, idx)
+    rgb, depth, cls = _shade(geom, cam_pos, dirs, t, gid)
     swap = lambda a: jnp.swapaxes(a, 0, 1)  # noqa: E731  [W, H] -> [H, W]
     return Frame(swap(rgb), swap(depth), swap(gid), swap(cls), overflow)
 

@@ -1,0 +1,99 @@
+"""Top-down drawings of scenes (matplotlib), e.g. as the background of path maps."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+
+
+from .mjcf import geom_aabb
+from .spec import CLASS_ID, Scene, class_colors
+
+
+def plot_topdown(
+    scene: Scene,
+    ax=None,
+    *,
+    color_by: str = "rgba",
+    room_labels: bool = True,
+    geom_labels: bool = False,
+):
+    """Draw the scene seen from above on a matplotlib axis and return the axis.
+
+    Ceilings are left out; the other geoms are drawn lowest top first, so what is
+    drawn last is what a camera above would see. color_by: "rgba" (geom colours) or
+    "class" (semantic class colours from `class_colors`). Boxes and horizontal
+    capsules are drawn as their xy bounding boxes, spheres and vertical capsules as
+    discs, ellipsoids as ellipses.
+    """
+    import matplotlib.patches as mpatches
+    import matplotlib.pyplot as plt
+
+    if color_by not in ("rgba", "class"):
+        raise ValueError(f"color_by must be 'rgba' or 'class', got {color_by!r}")
+    if ax is None:
+        _, ax = plt.subplots(figsize=(8, 8))
+    table = class_colors() / 255.0
+    items = []
+    for g in scene.geoms:
+        if g.cls == "ceiling":
+            continue
+        lo, hi = geom_aabb(g)
+        items.append((hi[2], g, lo, hi))
+    items.sort(key=lambda it: it[0])
+    for _, g, lo, hi in items:
+        color = g.rgba[:3] if color_by == "rgba" else table[CLASS_ID[g.cls]]
+        edge = (0, 0, 0, 0.35)
+        cx, cy = (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2
+        w, h = hi[0] - lo[0], hi[1] - lo[1]
+        if g.type == "sphere" or (g.type == "capsule" and abs(w - h) < 1e-9):
+            patch = mpatches.Circle((cx, cy), w / 2, facecolor=color, edgecolor=edge, lw=0.5)
+        elif g.type == "ellipsoid":
+            patch = mpatches.Ellipse((cx, cy), w, h, facecolor=color, edgecolor=edge, lw=0.5)
+        else:
+            patch = mpatches.Rectangle((lo[0], lo[1]), w, h, facecolor=color, edgecolor=edge, lw=0.5)
+        ax.add_patch(patch)
+        if geom_labels and g.cls not in ("floor", "wall"):
+            ax.text(cx, cy, g.name or g.cls, fontsize=5, ha="center", va="center")
+    if room_labels:
+        for i, room in enumerate(scene.rooms):
+            x0, y0, x1, y1 = room.rect
+            ax.text(
+                (x0 + x1) / 2,
+                y1 - 0.15,
+                f"{i}: {room.type}",
+                fontsize=8,
+                ha="center",
+                va="top",
+                bbox=dict(facecolor="white", alpha=0.7, lw=0),
+            )
+    x0, y0, x1, y1 = scene.bounds
+    pad = 0.3
+    ax.set_xlim(x0 - pad, x1 + pad)
+    ax.set_ylim(y0 - pad, y1 + pad)
+    ax.set_aspect("equal")
+    ax.set_title(scene.name)
+    return ax
+
+
+def save_topdown(scene: Scene, path: str, *, color_by: str = "rgba", dpi: int = 120, size: Optional[float] = None):
+    """Render `plot_topdown` of a scene to an image file."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    x0, y0, x1, y1 = scene.bounds
+    scale = size or 8.0
+    aspect = (y1 - y0 + 0.6) / max(x1 - x0 + 0.6, 1e-6)
+    fig, ax = plt.subplots(figsize=(scale, max(2.0, scale * aspect)))
+    plot_topdown(scene, ax, color_by=color_by)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
+__all__ = ["plot_topdown", "save_topdown"]
+
+
