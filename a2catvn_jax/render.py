@@ -1,22 +1,29 @@
 """Exact ray-cast camera: RGB, depth and semantic segmentation of a static scene.
 
-One ray per pixel is intersected with the scene's boxes, ellipsoids (and spheres)
-and capsules, with the same geometry MuJoCo's `mj_ray` uses: depth is the distance
-along the unit pixel ray to the first surface and `geom` the id of the geom hit.
+One ray per pixel is intersected with the scene's boxes, ellipsoids (spheres are
+ellipsoids) and capsules: the same geometry MuJoCo's `mj_ray` sees. Depth is the
+distance along the unit pixel ray to the first surface, `geom` the MuJoCo id of the
+geom hit. Images are computed column-major ([W, H]) and returned row-major.
 
-Acceleration (exact): the rays of one image column all project onto a narrow wedge
-of horizontal directions (the camera never rolls). Per column, a geom can only be
-hit if its xy footprint meets that wedge. In a closed scene, an axis-aligned box
-that spans floor to ceiling and covers the whole wedge bounds how far (horizontally)
-any ray of the column can travel, so geoms whose footprint lies farther away are
-skipped too. Each column then tests at most `K` candidates per geom family instead
-of every geom. Columns with more candidates than fit set an overflow flag; batched
-rendering re-renders those frames by brute force, so results never depend on `K`.
+Speed comes from two things:
+- Fused loops. Each geom family is intersected in a real XLA while loop over its
+  members, written per vector component, so one member's whole test is a single
+  elementwise pass over the image that keeps the running nearest hit.
+- Exact culling. The camera never rolls, so the rays of a tile of adjacent image
+  columns project onto a narrow wedge of horizontal directions. A geom whose xy
+  footprint misses the wedge cannot be hit by them. In a closed scene (floor and
+  ceiling everywhere, walls from floor to ceiling) the nearest floor-to-ceiling box
+  along the wedge's edges also bounds how far the tile's rays travel horizontally;
+  geoms beyond that are skipped too. Each tile tests at most `candidates` members
+  per family. The result is then verified: every ray's hit must lie within the
+  distance bound. Frames where a tile had too many candidates or a ray failed the
+  check are re-rendered against all geoms, so the output never depends on culling.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import jax
@@ -32,25 +39,45 @@ from a2catvn_jax.geometry import (
     Geometry,
 )
 
-INF = jnp.float32(1e10)
-_WEDGE_EPS = 2e-3  # radians added to each side of a column's wedge
+INF = 1e10
+_WEDGE_EPS = 2e-3  # radians added to each side of a tile's wedge
 _DIST_EPS = 1e-3  # metres
-_OCCLUSION_SLACK = 0.5  # metres added to a column's occlusion estimate
+_OCCLUSION_SLACK = 0.25  # metres added to a tile's occlusion estimate
 _LIGHT = np.array([0.4, 0.6, 1.0], np.float32) / np.linalg.norm([0.4, 0.6, 1.0])
 
 
 @dataclasses.dataclass(frozen=True)
 class CameraSpec:
-    """Static camera settings (they fix array shapes)."""
+    """Static camera and renderer settings (they fix array shapes).
+
+    candidates: per tile and geom family, how many geoms the culled renderer tests;
+      0 disables culling (every ray tests every geom).
+    tile_columns: image columns per culling tile (reduced to a divisor of `width`).
+    fallback_frames: how many frames of a batch may be re-rendered without culling
+      before the whole batch is (keeps the rare failures of culling cheap).
+    """
 
     height: int
     width: int
     fovy: float = 60.0
-    candidates: int = 24  # per column and family; <= 0 disables culling
+    candidates: int = 24
+    tile_columns: int = 4
+    fallback_frames: int = 8
 
     def __post_init__(self):
         if self.height < 1 or self.width < 1:
             raise ValueError(f"image size must be positive, got {self.height}x{self.width}")
+        if not 0.0 < self.fovy < 180.0:
+            raise ValueError(f"fovy must be in (0, 180) degrees, got {self.fovy}")
+        if self.candidates < 0 or self.tile_columns < 1 or self.fallback_frames < 1:
+            raise ValueError(
+                "candidates must be >= 0 and tile_columns, fallback_frames >= 1, got "
+                f"{self.candidates}, {self.tile_columns}, {self.fallback_frames}"
+            )
+
+    @property
+    def tile(self) -> int:
+        return max(c for c in range(1, min(self.tile_columns, self.width) + 1) if self.width % c == 0)
 
 
 class Frame(NamedTuple):
@@ -60,7 +87,7 @@ class Frame(NamedTuple):
     depth: jnp.ndarray  # float32 metres along the ray, 0 where nothing is hit
     geom: jnp.ndarray  # int32 MuJoCo geom id, -1 where nothing is hit
     cls: jnp.ndarray  # int32 semantic class, 0 where nothing is hit
-    overflow: jnp.ndarray  # bool [...]: some column exceeded its candidate cap
+    fallback: jnp.ndarray  # bool [...]: culling could not be trusted, rendered in full
 
 
 # ----------------------------------------------------------------------------------
@@ -160,7 +187,7 @@ def _prepare(f: str, pos, rot, size, cam_pos) -> dict:
 
 
 # ----------------------------------------------------------------------------------
-# Column culling.
+# Tile culling. Rays are grouped as [T, C * H]: T tiles of C adjacent columns.
 
 
 def _rot2(v, angle):
@@ -172,45 +199,49 @@ def _cross2(a, b):
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
-def _column_wedges(dirs):
-    """Per column, unit boundary directions (right, left) of a widened xy wedge that
-    contains the horizontal directions of all its rays. dirs: [W, H, 3]."""
-    a = dirs[:, 0, :2]
-    b = dirs[:, -1, :2]
-    a = a / jnp.linalg.norm(a, axis=-1, keepdims=True)
-    b = b / jnp.linalg.norm(b, axis=-1, keepdims=True)
-    mid = a + b
+def _tile_wedges(dirs, tile: int):
+    """Per tile, unit boundary directions (right, left) [T, 2] of an xy wedge holding
+    the horizontal directions of all its rays, and its half-angle [T].
+
+    A ray's unnormalised horizontal direction is affine in its image-plane
+    coordinates, so a tile's rays span the cone of its four corner rays."""
+    first, last = dirs[0::tile], dirs[tile - 1 :: tile]
+    corners = jnp.stack([first[:, 0], first[:, -1], last[:, 0], last[:, -1]], 1)[..., :2]  # [T, 4, 2]
+    corners = corners / jnp.linalg.norm(corners, axis=-1, keepdims=True)
+    mid = jnp.sum(corners, 1)
     mid = mid / jnp.linalg.norm(mid, axis=-1, keepdims=True)
-    half = 0.5 * jnp.arccos(jnp.clip(jnp.sum(a * b, -1), -1.0, 1.0)) + _WEDGE_EPS
-    return _rot2(mid, -half), _rot2(mid, half)
+    ang = jnp.arctan2(_cross2(mid[:, None], corners), jnp.sum(mid[:, None] * corners, -1))
+    lo = jnp.min(ang, 1) - _WEDGE_EPS
+    hi = jnp.max(ang, 1) + _WEDGE_EPS
+    return _rot2(mid, lo), _rot2(mid, hi), 0.5 * (hi - lo)
 
 
 def _corners(fp):
     x0, y0, x1, y1 = fp[..., 0], fp[..., 1], fp[..., 2], fp[..., 3]
-    return jnp.stack(
-        [jnp.stack([x0, y0], -1), jnp.stack([x1, y0], -1), jnp.stack([x0, y1], -1), jnp.stack([x1, y1], -1)],
-        -2,
-    )  # [..., 4, 2]
+    xs = jnp.stack([x0, x1, x0, x1], -1)
+    ys = jnp.stack([y0, y0, y1, y1], -1)
+    return jnp.stack([xs, ys], -1)  # [..., 4, 2]
 
 
 def _in_wedge(fp, c, right, left):
-    """Whether footprints fp [N, 4] may meet each column's wedge: [W, N]."""
-    rel = _corners(fp) - c  # [N, 4, 2]
-    r = right[:, None, None, :]
-    lft = left[:, None, None, :]
-    ok_r = jnp.max(_cross2(r, rel[None]), -1) >= -1e-6
-    ok_l = jnp.max(_cross2(rel[None], lft), -1) >= -1e-6
+    """Whether footprints fp [N, 4] may meet each tile's wedge: [T, N]. Conservative:
+    a footprint is kept unless all its corners lie outside one boundary line."""
+    rel = (_corners(fp) - c)[None]  # [1, N, 4, 2]
+    ok_r = jnp.max(_cross2(right[:, None, None, :], rel), -1) >= -1e-6
+    ok_l = jnp.max(_cross2(rel, left[:, None, None, :]), -1) >= -1e-6
     return ok_r & ok_l
 
 
 def _footprint_distance(fp, c):
+    """Horizontal distance from point c to each footprint rectangle, [N]."""
     dx = jnp.maximum(jnp.maximum(fp[..., 0] - c[0], c[0] - fp[..., 2]), 0.0)
     dy = jnp.maximum(jnp.maximum(fp[..., 1] - c[1], c[1] - fp[..., 3]), 0.0)
     return jnp.sqrt(dx * dx + dy * dy)
 
 
 def _entry_2d(fp, c, u):
-    """2D slab: entry distance of rays c + s u into rectangles, INF if missed. u [W,2]."""
+    """Entry distance of the 2D rays c + s u [T, 2] into rectangles fp [N, 4]: [T, N],
+    INF where missed or where c is inside."""
     lo = fp[None, :, :2] - c
     hi = fp[None, :, 2:] - c
     inv = _safe_inv(u)[:, None, :]
@@ -220,11 +251,11 @@ def _entry_2d(fp, c, u):
     return jnp.where((tn <= tf) & (tn >= 0), tn, INF)
 
 
-def _occlusion_estimate(geom: Geometry, c, right, left):
-    """Per column, an estimate of how far (horizontally) its rays travel: [W].
+def _occlusion_estimate(geom: Geometry, c, right, left, half_angle):
+    """Per tile, an estimate of how far (horizontally) its rays travel: [T].
 
-    The nearest occluder along each wedge boundary, plus slack for corners between
-    them. It is only an estimate; `render` verifies every ray against it."""
+    The nearest occluder along each wedge boundary, plus slack for what lies between
+    them (the wedge's width there). Only an estimate: `render` verifies each ray."""
     boxes = geom.families["abox"]
     if boxes.count == 0:
         return jnp.full(right.shape[:1], INF)
@@ -232,16 +263,17 @@ def _occlusion_estimate(geom: Geometry, c, right, left):
     e_r = jnp.min(jnp.where(occ, _entry_2d(boxes.fp, c, right), INF), -1)
     e_l = jnp.min(jnp.where(occ, _entry_2d(boxes.fp, c, left), INF), -1)
     far = jnp.maximum(e_r, e_l)
-    return jnp.where(far < INF, far + _OCCLUSION_SLACK, INF)
+    slack = _OCCLUSION_SLACK + 2.0 * far * jnp.tan(half_angle)
+    return jnp.where(far < INF, far + slack, INF)
 
 
-def _column_candidates(geom: Geometry, cam_pos, dirs, cap: int):
-    """Per family, the geoms each column must test.
+def _tile_candidates(geom: Geometry, cam_pos, dirs, spec: CameraSpec):
+    """Per family, the geoms each tile must test.
 
-    Returns ({family: (indices [W, K_f], ok [W, K_f])}, far [W], overflow)."""
+    Returns ({family: (indices [T, K_f], ok [T, K_f])}, far [T], overflow)."""
     c = cam_pos[:2]
-    right, left = _column_wedges(dirs)
-    far = _occlusion_estimate(geom, c, right, left)
+    right, left, half = _tile_wedges(dirs, spec.tile)
+    far = _occlusion_estimate(geom, c, right, left, half)
     out, overflow = {}, jnp.bool_(False)
     for f in FAMILIES:
         fam = geom.families[f]
@@ -253,13 +285,13 @@ def _column_candidates(geom: Geometry, cam_pos, dirs, cap: int):
             & (_footprint_distance(fam.fp, c)[None, :] <= far[:, None] + _DIST_EPS)
             & fam.valid[None, :]
         )
-        if n <= cap:
+        if n <= spec.candidates:
             out[f] = (jnp.broadcast_to(jnp.arange(n), mask.shape), mask)
             continue
         score = jnp.where(mask, (n - jnp.arange(n)).astype(jnp.float32), 0.0)
-        top, idx = jax.lax.top_k(score, cap)
+        top, idx = jax.lax.top_k(score, spec.candidates)
         out[f] = (idx, top > 0)
-        overflow = overflow | jnp.any(jnp.sum(mask, -1) > cap)
+        overflow = overflow | jnp.any(jnp.sum(mask, -1) > spec.candidates)
     return out, far, overflow
 
 
@@ -274,7 +306,7 @@ def _nearest(f: str, params: dict, rays, carry):
 
     The loop is always a real XLA while loop (at least two trips, no remainder): a
     loop XLA unrolls away would let it fuse the whole intersection computation into
-    every consumer of the image (e.g. each shifted copy), recomputing it many times."""
+    every consumer of the image, recomputing it many times."""
     n = params["ok"].shape[0]
     unroll = 4 if n >= 8 else 1
     padded = max(-(-n // unroll) * unroll, 2)
@@ -296,13 +328,13 @@ def _nearest(f: str, params: dict, rays, carry):
 
 
 def _trace(geom: Geometry, cam_pos, dirs, cands=None):
-    """Nearest hit per ray of dirs [W, H, 3] among the per-column candidates `cands`
-    (from `_column_candidates`), or among all geoms when `cands` is None.
+    """Nearest hit per ray of dirs [T, R, 3] (rays grouped by tile) among the per-tile
+    candidates `cands` (from `_tile_candidates`), or among all geoms if None.
 
-    Returns (t, geom id), each [W, H]; t is INF and the id -1 where nothing is hit."""
+    Returns (t, geom id), each [T, R]; t is INF and the id -1 where nothing is hit."""
     dx, dy, dz = dirs[..., 0], dirs[..., 1], dirs[..., 2]
     rays = (dx, dy, dz, _safe_inv(dx), _safe_inv(dy), _safe_inv(dz))
-    carry = (jnp.full(dx.shape, INF), jnp.full(dx.shape, -1, jnp.int32))
+    carry = (jnp.full(dx.shape, INF, jnp.float32), jnp.full(dx.shape, -1, jnp.int32))
     for f in FAMILIES:
         fam = geom.families[f]
         if fam.count == 0:
@@ -310,14 +342,13 @@ def _trace(geom: Geometry, cam_pos, dirs, cands=None):
         if cands is None:
             params = _prepare(f, fam.pos, fam.rot, fam.size, cam_pos)
             params.update(ok=fam.valid, gid=fam.gid)
-            carry = _nearest(f, params, rays, carry)
         else:
-            idx, ok = cands[f]  # [W, K]
+            idx, ok = cands[f]  # [T, K]
             params = _prepare(f, fam.pos[idx], fam.rot[idx], fam.size[idx], cam_pos)
             params.update(ok=ok, gid=fam.gid[idx])
-            # Candidate-major with a broadcast axis for the rows: [K, W, 1].
+            # Candidate-major with a broadcast axis for the tile's rays: [K, T, 1].
             params = {k: jnp.swapaxes(v, 0, 1)[..., None] for k, v in params.items()}
-            carry = _nearest(f, params, rays, carry)
+        carry = _nearest(f, params, rays, carry)
     return carry
 
 
@@ -380,45 +411,68 @@ def _shade(geom: Geometry, cam_pos, dirs, t, gid):
     return (rgb * 255.0 + 0.5).astype(jnp.uint8), depth, cls
 
 
-def render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool = True) -> Frame:
-    """Render one camera in one scene (unbatched Geometry). Images are [H, W]."""
-    dirs = camera.column_ray_directions(yaw, tilt, spec.height, spec.width, spec.fovy)
-    if culled and spec.candidates > 0:
-        cands, far, overflow = _column_candidates(geom, cam_pos, dirs, spec.candidates)
-    else:
-        cands, far, overflow = None, None, jnp.bool_(False)
-    t, gid = _trace(geom, cam_pos, dirs, cands)
-    if far is not None:
+def _render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool) -> Frame:
+    dirs = camera.column_ray_directions(yaw, tilt, spec.height, spec.width, spec.fovy)  # [W, H, 3]
+    tile = spec.tile if culled else spec.width
+    tiled = dirs.reshape(spec.width // tile, tile * spec.height, 3)
+    if culled:
+        cands, far, fallback = _tile_candidates(geom, cam_pos, dirs, spec)
+        t, gid = _trace(geom, cam_pos, tiled, cands)
         # Geoms were skipped only beyond `far`: a ray whose hit is no farther than that
-        # (horizontally) has found its true first hit; any other ray makes the frame
-        # fall back to the full geom set.
-        reach = t * jnp.linalg.norm(dirs[..., :2], axis=-1)
+        # (horizontally) has found its true nearest hit.
+        reach = t * jnp.sqrt(tiled[..., 0] ** 2 + tiled[..., 1] ** 2)
         ok = (far[:, None] >= INF) | ((t < INF) & (reach <= far[:, None] + _DIST_EPS))
-        overflow = overflow | ~jnp.all(ok)
+        fallback = fallback | ~jnp.all(ok)
+    else:
+        t, gid = _trace(geom, cam_pos, tiled)
+        fallback = jnp.bool_(False)
+    t = t.reshape(spec.width, spec.height)
+    gid = gid.reshape(spec.width, spec.height)
     rgb, depth, cls = _shade(geom, cam_pos, dirs, t, gid)
     swap = lambda a: jnp.swapaxes(a, 0, 1)  # noqa: E731  [W, H] -> [H, W]
-    return Frame(swap(rgb), swap(depth), swap(gid), swap(cls), overflow)
+    return Frame(swap(rgb), swap(depth), swap(gid), swap(cls), fallback)
+
+
+def render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool = True) -> Frame:
+    """Render one camera in one scene (unbatched Geometry); images [H, W].
+
+    With `culled`, `fallback` says whether culling had to be abandoned, in which case
+    this frame is *not* exact: use `render_batch` (which re-renders those frames), or
+    `culled=False`."""
+    return _render(geom, cam_pos, yaw, tilt, spec, culled and spec.candidates > 0)
 
 
 def render_batch(geometry: Geometry, scene, cam_pos, yaw, tilt, spec: CameraSpec) -> Frame:
-    """Render B cameras; `geometry` is batched over scenes [S, ...], `scene` [B] picks
-    each camera's scene; cam_pos [B, 3], yaw/tilt [B] radians.
+    """Render B cameras exactly. `geometry` is batched over scenes [S, ...], `scene` [B]
+    picks each camera's scene; cam_pos [B, 3], yaw/tilt [B] radians. Images [B, H, W].
 
-    Frames whose culled render overflowed a candidate cap are re-rendered against all
-    geoms (a real branch here; under an outer vmap it becomes a select that always
-    runs both)."""
+    Culled frames that fail their check are re-rendered against every geom: up to
+    `spec.fallback_frames` of them on their own, more by re-rendering the batch (a
+    real branch; under an outer vmap it becomes a select that runs both sides)."""
     geo = jax.tree_util.tree_map(lambda a: a[scene], geometry)
-    frames = jax.vmap(lambda g, p, y, t: render(g, p, y, t, spec, culled=True))(geo, cam_pos, yaw, tilt)
+    full = jax.vmap(lambda g, p, y, t: _render(g, p, y, t, spec, culled=False))
     if spec.candidates <= 0:
-        return frames
+        return full(geo, cam_pos, yaw, tilt)
+    frames = jax.vmap(lambda g, p, y, t: _render(g, p, y, t, spec, culled=True))(geo, cam_pos, yaw, tilt)
+    bad = frames.fallback
+    b = bad.shape[0]
+    m = min(spec.fallback_frames, b)
 
-    def brute(frames):
-        full = jax.vmap(lambda g, p, y, t: render(g, p, y, t, spec, culled=False))(geo, cam_pos, yaw, tilt)
+    def some(frames):
+        # Re-render the (at most m) failed frames and scatter them back.
+        idx = jnp.argsort(~bad, stable=True)[:m]
+        sub = jax.tree_util.tree_map(lambda a: a[idx], (geo, cam_pos, yaw, tilt))
+        redo = full(*sub)
+        keep = bad[idx]
+        merged = []
+        for a, r in zip(frames[:4], redo[:4]):
+            sel = keep.reshape((m,) + (1,) * (r.ndim - 1))
+            merged.append(a.at[idx].set(jnp.where(sel, r, a[idx])))
+        return Frame(*merged, bad)
 
-        def pick(a, b):
-            m = frames.overflow.reshape(frames.overflow.shape + (1,) * (a.ndim - 1))
-            return jnp.where(m, a, b)
+    def everything(frames):
+        return full(geo, cam_pos, yaw, tilt)._replace(fallback=bad)
 
-        return Frame(*(pick(a, b) for a, b in zip(full[:4], frames[:4])), frames.overflow)
-
-    return jax.lax.cond(jnp.any(frames.overflow), brute, lambda f: f, frames)
+    n_bad = jnp.sum(bad)
+    branch = jnp.where(n_bad == 0, 0, jnp.where(n_bad <= m, 1, 2))
+    return jax.lax.switch(branch, [lambda f: f, some, everything], frames)
