@@ -1,0 +1,302 @@
+"""The batched, pure-functional navigation environment.
+
+`NavEnv.reset(key) -> State` and `NavEnv.step(state, action) -> State` act on B agents
+spread over the world's S scenes (agent b lives in scene b mod S) and are jit- and
+vmap-able. An episode ends on success (reward 1) or after `max_episode_steps`; the
+agent is then reset in the same step (auto-reset): `obs` shows the new episode's
+first frame while `reward`, `done` and `metrics` describe the step that ended.
+
+Actions (paper): forward 0.5 m, backward 0.2 m, left/right 0.35 m sideways, rotate
++-30 deg, tilt camera +-30 deg ("full"); the same without tilt ("no_tilt"); or
+forward/backward 0.33 m and rotate +-90 deg without noise ("grid"). After each action
+of the continuous sets the position gets N(0, 0.02^2) noise per axis and the heading
+N(0, (2 deg)^2). Moves are swept against obstacle footprints grown by the agent's
+radius and stop just before contact, so the agent never ends inside a geom.
+
+The curriculum complexity tau is data (`State.info["complexity"]`): a new start is
+drawn uniformly among free cells whose geodesic distance to the goal is at most
+tau * (the scene's largest geodesic distance).
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from a2catvn_jax import camera, render
+from a2catvn_jax.config import EnvConfig
+from a2catvn_jax.world import SEGMENTATION_COLORS, World, cam_position, make_scenes
+
+# (forward, left, rotate, tilt) per action; metres and degrees.
+ACTION_SETS = {
+    "full": (
+        ("forward", (0.5, 0.0, 0.0, 0.0)),
+        ("backward", (-0.2, 0.0, 0.0, 0.0)),
+        ("left", (0.0, 0.35, 0.0, 0.0)),
+        ("right", (0.0, -0.35, 0.0, 0.0)),
+        ("rotate_left", (0.0, 0.0, 30.0, 0.0)),
+        ("rotate_right", (0.0, 0.0, -30.0, 0.0)),
+        ("tilt_up", (0.0, 0.0, 0.0, 30.0)),
+        ("tilt_down", (0.0, 0.0, 0.0, -30.0)),
+    ),
+    "grid": (
+        ("forward", (0.33, 0.0, 0.0, 0.0)),
+        ("backward", (-0.33, 0.0, 0.0, 0.0)),
+        ("rotate_left", (0.0, 0.0, 90.0, 0.0)),
+        ("rotate_right", (0.0, 0.0, -90.0, 0.0)),
+    ),
+}
+ACTION_SETS["no_tilt"] = ACTION_SETS["full"][:6]
+_CONTACT_GAP = 1e-3  # metres kept between the grown footprints and the agent's centre
+MIN_IMAGE_SIZE = 16
+
+
+@struct.dataclass
+class State:
+    """Batched environment state (leading axis B everywhere).
+
+    obs: rgb [B,h,w,3] uint8, depth [B,h,w] float32 (metres along the ray),
+      segmentation [B,h,w] uint8 class ids, segmentation_rgb [B,h,w,3] (class colours),
+      and the same four for the target image, prefixed "target_".
+    info: scene, goal [B] int32; pose [B, 4] (x, y, yaw, tilt); target_pose [B, 4];
+      start_distance [B] geodesic start-to-goal distance; step [B]; path_length [B];
+      episode_return [B]; complexity [B]; key [B] PRNG keys.
+    metrics (of the step just taken; episode_* are meaningful where `done`):
+      success, truncated, episode_length, episode_return, episode_spl,
+      episode_start_distance, fallback (renderer fell back to brute force).
+    """
+
+    obs: dict
+    reward: jnp.ndarray
+    done: jnp.ndarray
+    metrics: dict
+    info: dict
+
+
+class NavEnv:
+    """Target-driven visual navigation over a batch of scenes."""
+
+    def __init__(self, cfg: EnvConfig, world: Optional[World] = None, seed_offset: int = 0):
+        if cfg.action_set not in ACTION_SETS:
+            raise ValueError(f"env.action_set: unknown action set {cfg.action_set!r}; use one of {sorted(ACTION_SETS)}")
+        if cfg.render.image_size < MIN_IMAGE_SIZE:
+            raise ValueError(
+                f"env.render.image_size: {cfg.render.image_size} is too small for the network "
+                f"(needs at least {MIN_IMAGE_SIZE})"
+            )
+        self.cfg = cfg
+        self.world = world if world is not None else World(cfg, make_scenes(cfg, seed_offset), seed=cfg.scene.seed + seed_offset)
+        self.num_envs = cfg.num_envs
+        self.action_names = tuple(name for name, _ in ACTION_SETS[cfg.action_set])
+        self.num_actions = len(self.action_names)
+        moves = np.array([m for _, m in ACTION_SETS[cfg.action_set]], np.float32)
+        moves[:, 2:] = np.deg2rad(moves[:, 2:])
+        self._moves = moves
+        self._grid = cfg.action_set == "grid"
+        self._spec = self.world.spec
+        self._colors = jnp.asarray(SEGMENTATION_COLORS)
+
+    # -- public API -------------------------------------------------------------------
+
+    @property
+    def num_scenes(self) -> int:
+        return len(self.world.scenes)
+
+    def reset(self, key, complexity: Optional[float] = None) -> State:
+        """Fresh episodes for all B agents."""
+        B = self.num_envs
+        if jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
+            key = jax.random.key_data(key)
+        tau = jnp.full((B,), self.cfg.complexity if complexity is None else complexity, jnp.float32)
+        keys = jax.random.split(key, B)
+        scene = jnp.arange(B, dtype=jnp.int32) % self.num_scenes
+        keys, start = jax.vmap(self._sample_episode)(keys, scene, tau)
+        info = self._episode_info(start, scene, tau, keys)
+        frame = self._render(scene, info["pose"])
+        zeros = jnp.zeros((B,), jnp.float32)
+        metrics = self._metrics(zeros > 1, zeros > 1, info, zeros, frame.fallback)
+        return State(self._obs(frame, info), zeros, zeros > 1, metrics, info)
+
+    def step(self, state: State, action) -> State:
+        """Apply actions [B] (int) and auto-reset finished episodes."""
+        info = state.info
+        keys, noise_key = jax.vmap(jax.random.split, out_axes=1)(info["key"])
+        pose, moved = jax.vmap(self._move)(info["scene"], info["pose"], jnp.asarray(action, jnp.int32), noise_key)
+        success = jax.vmap(self._at_goal)(info["scene"], info["goal"], pose)
+        step = info["step"] + 1
+        truncated = (step >= self.cfg.max_episode_steps) & ~success
+        done = success | truncated
+        reward = success.astype(jnp.float32)
+        path = info["path_length"] + moved
+        ended = dict(info, pose=pose, step=step, path_length=path, episode_return=info["episode_return"] + reward)
+
+        keys, start = jax.vmap(self._sample_episode)(keys, info["scene"], info["complexity"])
+        fresh = self._episode_info(start, info["scene"], info["complexity"], keys)
+        ended["key"] = keys
+        new_info = jax.tree_util.tree_map(lambda a, b: _where(done, a, b), fresh, ended)
+        frame = self._render(new_info["scene"], new_info["pose"])
+        metrics = self._metrics(success, truncated, ended, reward, frame.fallback)
+        return State(self._obs(frame, new_info), reward, done, metrics, new_info)
+
+    def set_complexity(self, state: State, complexity) -> State:
+        """The same state with curriculum complexity tau for the episodes that follow."""
+        tau = jnp.broadcast_to(jnp.asarray(complexity, jnp.float32), state.info["complexity"].shape)
+        return state.replace(info=dict(state.info, complexity=tau))
+
+    # Debugging API: hold the renderer against MuJoCo for any pose.
+    def scene_mjcf(self, scene_index: int) -> str:
+        """The MJCF (padded to the batch's geom layout) that scene `scene_index` compiles from."""
+        return self.world.mjcf[scene_index]
+
+    def camera_rays(self, pose):
+        """World ray origin [3] and unit per-pixel directions [H, W, 3] of a pose (x, y, yaw, tilt)."""
+        pose = jnp.asarray(pose, jnp.float32)
+        s = self._spec
+        return cam_position(pose, self.cfg.camera_height), camera.ray_directions(pose[2], pose[3], s.height, s.width, s.fovy)
+
+    def render_pose(self, scene_index: int, pose) -> render.Frame:
+        """RGB, depth, geom ids and classes seen from pose (x, y, yaw, tilt) in a scene."""
+        pose = jnp.asarray(pose, jnp.float32)[None]
+        frame = self._render(jnp.array([scene_index], jnp.int32), pose)
+        return jax.tree_util.tree_map(lambda a: a[0], frame)
+
+    def segmentation_rgb(self, classes):
+        """The paper's encoding of class ids as colours evenly spread in hue: [..., 3] uint8."""
+        return self._colors[classes]
+
+    # -- internals ----------------------------------------------------------------------
+
+    def _render(self, scene, pose) -> render.Frame:
+        return render.render_batch(
+            self.world.arrays.geometry, scene, cam_position(pose, self.cfg.camera_height), pose[:, 2], pose[:, 3], self._spec
+        )
+
+    def _obs(self, frame: render.Frame, info) -> dict:
+        w = self.world.arrays
+        s, g = info["scene"], info["goal"]
+        seg = frame.cls.astype(jnp.uint8)
+        tseg = w.target_seg[s, g]
+        return {
+            "rgb": frame.rgb,
+            "depth": frame.depth,
+            "segmentation": seg,
+            "segmentation_rgb": self._colors[seg],
+            "target_rgb": w.target_rgb[s, g],
+            "target_depth": w.target_depth[s, g],
+            "target_segmentation": tseg,
+            "target_segmentation_rgb": self._colors[tseg],
+        }
+
+    def _cell(self, scene, xy):
+        w = self.world.arrays
+        ij = jnp.floor((xy - w.grid_origin[scene]) / self.cfg.grid_resolution).astype(jnp.int32)
+        H, W = w.free.shape[1:]
+        return jnp.clip(ij[1], 0, H - 1), jnp.clip(ij[0], 0, W - 1)
+
+    def _at_goal(self, scene, goal, pose):
+        i, j = self._cell(scene, pose[:2])
+        return self.world.arrays.goal_success[scene, goal, i, j]
+
+    def _sample_episode(self, key, scene, tau):
+        """(next key, (goal, pose, start distance)) of a new episode in `scene`."""
+        w = self.world.arrays
+        key, kg, kc, kj, ky = jax.random.split(key, 5)
+        goal = jax.random.randint(kg, (), 0, w.goal_dist.shape[1])
+        dist = w.goal_dist[scene, goal]
+        limit = jnp.maximum(tau * w.diameter[scene], w.goal_min_dist[scene, goal])
+        ok = w.free[scene] & ~w.goal_success[scene, goal] & (dist <= limit)
+        H, W = dist.shape
+        cell = jax.random.categorical(kc, jnp.where(ok, 0.0, -jnp.inf).reshape(-1))
+        i, j = cell // W, cell % W
+        res = self.cfg.grid_resolution
+        centre = w.grid_origin[scene] + (jnp.stack([j, i]).astype(jnp.float32) + 0.5) * res
+        if self._grid:
+            yaw = jax.random.randint(ky, (), 0, 4).astype(jnp.float32) * (jnp.pi / 2)
+            xy = centre
+        else:
+            yaw = jax.random.uniform(ky, (), minval=-jnp.pi, maxval=jnp.pi)
+            jitter = centre + jax.random.uniform(kj, (2,), minval=-0.5, maxval=0.5) * res
+            xy = jnp.where(self._blocked(scene, jitter), centre, jitter)
+        pose = jnp.concatenate([xy, jnp.stack([yaw, 0.0])])
+        return key, (goal, pose, dist[i, j])
+
+    def _episode_info(self, start, scene, tau, keys) -> dict:
+        goal, pose, dist = start
+        w = self.world.arrays
+        zeros = jnp.zeros_like(tau)
+        return {
+            "scene": scene,
+            "goal": goal.astype(jnp.int32),
+            "pose": pose,
+            "target_pose": w.target_pose[scene, goal],
+            "start_distance": dist,
+            "step": jnp.zeros_like(scene),
+            "path_length": zeros,
+            "episode_return": zeros,
+            "complexity": tau,
+            "key": keys,
+        }
+
+    def _blocked(self, scene, xy):
+        r = self.cfg.agent_radius + _CONTACT_GAP
+        ob = self.world.arrays.obstacles[scene]
+        inside = (xy[0] >= ob[:, 0] - r) & (xy[0] <= ob[:, 2] + r) & (xy[1] >= ob[:, 1] - r) & (xy[1] <= ob[:, 3] + r)
+        return jnp.any(inside)
+
+    def _sweep(self, scene, p0, p1):
+        """Fraction in [0, 1] of the segment p0 -> p1 the agent can travel before its
+        grown footprint would touch an obstacle."""
+        r = self.cfg.agent_radius
+        ob = self.world.arrays.obstacles[scene]
+        lo = ob[:, :2] - r
+        hi = ob[:, 2:] + r
+        d = p1 - p0
+        inv = render._safe_inv(d)
+        t1, t2 = (lo - p0) * inv, (hi - p0) * inv
+        tn = jnp.max(jnp.minimum(t1, t2), -1)
+        tf = jnp.min(jnp.maximum(t1, t2), -1)
+        hits = (tn <= tf) & (tf >= 0) & (tn <= 1.0)
+        first = jnp.min(jnp.where(hits, tn, 1.0))
+        length = jnp.linalg.norm(d)
+        return jnp.clip(first - _CONTACT_GAP / jnp.maximum(length, 1e-9), 0.0, 1.0)
+
+    def _move(self, scene, pose, action, key):
+        """New pose after `action` and the distance actually travelled."""
+        fwd, left, rot, tilt = (jnp.asarray(self._moves)[action, i] for i in range(4))
+        x, y, yaw, cam_tilt = pose[0], pose[1], pose[2], pose[3]
+        p0 = jnp.stack([x, y])
+        step = jnp.stack([fwd * jnp.cos(yaw) - left * jnp.sin(yaw), fwd * jnp.sin(yaw) + left * jnp.cos(yaw)])
+        yaw = yaw + rot
+        if not self._grid:
+            kp, kh = jax.random.split(key)
+            step = step + self.cfg.position_noise * jax.random.normal(kp, (2,))
+            yaw = yaw + jnp.deg2rad(self.cfg.heading_noise_deg) * jax.random.normal(kh)
+        frac = self._sweep(scene, p0, p0 + step)
+        if self._grid:
+            frac = jnp.where(frac < 1.0, 0.0, 1.0)  # grid moves happen whole or not at all
+        p1 = p0 + frac * step
+        yaw = jnp.arctan2(jnp.sin(yaw), jnp.cos(yaw))
+        max_tilt = jnp.deg2rad(self.cfg.max_tilt_deg)
+        cam_tilt = jnp.clip(cam_tilt + tilt, -max_tilt, max_tilt)
+        return jnp.concatenate([p1, jnp.stack([yaw, cam_tilt])]), frac * jnp.linalg.norm(step)
+
+    def _metrics(self, success, truncated, ended, reward, fallback) -> dict:
+        d0 = ended["start_distance"]
+        spl = success * d0 / jnp.maximum(jnp.maximum(ended["path_length"], d0), 1e-6)
+        return {
+            "success": success,
+            "truncated": truncated,
+            "episode_length": ended["step"],
+            "episode_return": ended["episode_return"],
+            "episode_spl": spl,
+            "episode_start_distance": d0,
+            "fallback": fallback,
+        }
+
+
+def _where(mask, a, b):
+    return jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b)

@@ -1,0 +1,248 @@
+"""Host-side construction of a batch of scenes: MJCF, compiled MuJoCo models, render
+geometry, occupancy grids, goals and their target images, as device arrays.
+
+Everything the jitted environment needs is gathered here once; `World.arrays` is a
+pytree of fixed-shape arrays with a leading scene axis S.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+
+from a2catvn_jax import geometry as geometry_lib
+from a2catvn_jax import navgrid, render
+from a2catvn_jax.config import EnvConfig
+from a2catvn_jax.scenes import generate, mjcf
+from a2catvn_jax.scenes.mjcf import geom_aabb
+from a2catvn_jax.scenes.spec import STRUCTURAL_CLASSES, Scene, class_colors
+
+GOAL_KINDS = ("image", "room", "object")
+BODY_MARGIN = 0.1  # the agent's body reaches this far above its camera
+
+
+@struct.dataclass
+class WorldArrays:
+    """Device arrays of a world, leading axis S (scenes), T goals per scene.
+
+    geometry: render geometry. obstacles [S, N, 4] blocking footprints (padding far
+    away). grid_origin [S, 2]; free [S, H, W]; diameter [S] (metres).
+    goal_dist [S, T, H, W] geodesic distance to the goal region (inf: unreachable);
+    goal_success [S, T, H, W] cells inside the goal region; goal_min_dist [S, T]
+    smallest distance of a free cell outside the region (start fallback);
+    target_pose [S, T, 4] (x, y, yaw, tilt) of the target image's camera and
+    target_scene [S, T] the scene it was taken in; target_rgb [S, T, h, w, 3],
+    target_depth [S, T, h, w], target_seg [S, T, h, w] (class ids).
+    """
+
+    geometry: geometry_lib.Geometry
+    obstacles: jnp.ndarray
+    grid_origin: jnp.ndarray
+    free: jnp.ndarray
+    diameter: jnp.ndarray
+    goal_dist: jnp.ndarray
+    goal_success: jnp.ndarray
+    goal_min_dist: jnp.ndarray
+    target_pose: jnp.ndarray
+    target_scene: jnp.ndarray
+    target_rgb: jnp.ndarray
+    target_depth: jnp.ndarray
+    target_seg: jnp.ndarray
+
+
+@dataclasses.dataclass
+class Goal:
+    success: np.ndarray  # bool [H, W]
+    pose: np.ndarray  # (x, y, yaw, tilt) of the target image camera
+    scene: int  # scene the target image is taken in
+    label: str
+
+
+def make_scenes(cfg: EnvConfig, seed_offset: int = 0) -> list[Scene]:
+    """The configured scenes; `seed_offset` gives a disjoint set (e.g. held-out houses)."""
+    sc = cfg.scene
+    seed = sc.seed + seed_offset
+    if sc.kind == "mjcf":
+        try:
+            with open(sc.mjcf_path) as f:
+                xml = f.read()
+        except OSError as e:
+            raise ValueError(f"env.scene.mjcf_path: cannot read {sc.mjcf_path!r}: {e}") from e
+        return [mjcf.scene_from_mjcf(xml, name=sc.mjcf_path)]
+    if sc.kind == "house":
+        return generate.make_scenes("house", sc.num_scenes, seed, grid=tuple(sc.grid), room_size=tuple(sc.room_size), height=sc.height)
+    if sc.kind == "room":
+        return generate.make_scenes("room", sc.num_scenes, seed, size=tuple(sc.room_size), height=sc.height)
+    return generate.make_scenes("maze", sc.num_scenes, seed, cells=tuple(sc.grid), height=sc.height)
+
+
+class World:
+    """S scenes with everything the environment needs (built once, on the host)."""
+
+    def __init__(self, cfg: EnvConfig, scenes: list[Scene], seed: int = 0):
+        self.cfg = cfg
+        self.scenes = scenes
+        self.layout = mjcf.layout_of(scenes)
+        self.mjcf = [mjcf.scene_to_mjcf(s, self.layout, fovy=cfg.render.fovy) for s in scenes]
+        self.models = [mjcf.compile_scene(x) for x in self.mjcf]
+        geometry = geometry_lib.pack(self.models, [s.closed for s in scenes], [s.height for s in scenes])
+        body = cfg.camera_height + BODY_MARGIN
+        self.grids = [navgrid.build(s, cfg.grid_resolution, cfg.agent_radius, body) for s in scenes]
+        self.spec = render.CameraSpec(
+            cfg.render.image_size,
+            cfg.render.image_size,
+            cfg.render.fovy,
+            candidates=cfg.render.column_candidates if cfg.render.culling else 0,
+        )
+        rng = np.random.default_rng(seed)
+        self.goals = [self._goals(k, rng) for k in range(len(scenes))]
+        self.arrays = self._arrays(geometry)
+
+    # -- goals ------------------------------------------------------------------------
+
+    def _random_free_pose(self, k: int, rng, mask: Optional[np.ndarray] = None) -> np.ndarray:
+        g = self.grids[k]
+        cells = np.flatnonzero(g.free & (mask if mask is not None else True))
+        if cells.size == 0:
+            cells = np.flatnonzero(g.free)
+        c = g.centres().reshape(-1, 2)[rng.choice(cells)]
+        return np.array([c[0], c[1], rng.uniform(-np.pi, np.pi), 0.0])
+
+    def _goals(self, k: int, rng) -> list[Goal]:
+        cfg, scene, grid = self.cfg, self.scenes[k], self.grids[k]
+        centres = grid.centres()
+        goals = []
+        for _ in range(cfg.goals_per_scene):
+            if cfg.goal == "image":
+                pose = self._random_free_pose(k, rng)
+                near = np.hypot(*(centres - pose[:2]).transpose(2, 0, 1)) <= cfg.success_distance
+                goals.append(Goal(near, pose, k, "image"))
+            elif cfg.goal == "room":
+                if not scene.rooms:
+                    raise ValueError(f"scene {scene.name!r} has no rooms: room-type goals need houses")
+                rtype = scene.rooms[rng.integers(len(scene.rooms))].type
+                rooms = [i for i, r in enumerate(scene.rooms) if r.type == rtype]
+                success = np.isin(grid.room, rooms)
+                # The target image is taken in another room of that type: in another
+                # scene of the batch if one has such a room, else in this one.
+                others = [
+                    (j, i)
+                    for j, s in enumerate(self.scenes)
+                    for i, r in enumerate(s.rooms)
+                    if r.type == rtype and j != k
+                ]
+                if others:
+                    j, i = others[rng.integers(len(others))]
+                else:
+                    j, i = k, rooms[rng.integers(len(rooms))]
+                pose = self._random_free_pose(j, rng, self.grids[j].room == i)
+                goals.append(Goal(success, pose, j, rtype))
+            else:
+                goals.append(self._object_goal(k, rng))
+        return goals
+
+    def _object_goal(self, k: int, rng) -> Goal:
+        cfg, scene, grid = self.cfg, self.scenes[k], self.grids[k]
+        objs = [g for g in scene.geoms if g.cls not in STRUCTURAL_CLASSES and g.cls != "rug"]
+        if not objs:
+            raise ValueError(f"scene {scene.name!r} has no objects for object goals")
+        model = self.models[k]
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        centres = grid.centres()
+        for _ in range(50):
+            obj = objs[rng.integers(len(objs))]
+            lo, hi = geom_aabb(obj)
+            dx = np.maximum(np.maximum(lo[0] - centres[..., 0], centres[..., 0] - hi[0]), 0)
+            dy = np.maximum(np.maximum(lo[1] - centres[..., 1], centres[..., 1] - hi[1]), 0)
+            dist = np.hypot(dx, dy)
+            success = dist <= cfg.object_distance
+            view = grid.free & (dist >= 0.6) & (dist <= 2.0)
+            target = (lo + hi) / 2
+            for c in rng.permutation(np.argwhere(view))[:20]:
+                eye = np.array([*centres[c[0], c[1]], cfg.camera_height])
+                vec = target - eye
+                gid = np.zeros(1, np.int32)
+                mujoco.mj_ray(model, data, eye, vec / np.linalg.norm(vec), None, 1, -1, gid)
+                name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, int(gid[0])) if gid[0] >= 0 else None
+                if name == obj.name and success.any() and (success & grid.free).any():
+                    yaw = np.arctan2(vec[1], vec[0])
+                    tilt = np.clip(np.arctan2(vec[2], np.hypot(vec[0], vec[1])), -0.5, 0.5)
+                    return Goal(success, np.array([eye[0], eye[1], yaw, tilt]), k, obj.name)
+        raise ValueError(f"scene {scene.name!r}: found no visible object for an object goal")
+
+    # -- arrays ---------------------------------------------------------------------
+
+    def _arrays(self, geometry) -> WorldArrays:
+        S, T = len(self.scenes), self.cfg.goals_per_scene
+        H = max(g.shape[0] for g in self.grids)
+        W = max(g.shape[1] for g in self.grids)
+
+        def pad(a, fill):
+            out = np.full((H, W), fill, a.dtype)
+            out[: a.shape[0], : a.shape[1]] = a
+            return out
+
+        free = np.stack([pad(g.free, False) for g in self.grids])
+        goal_dist = np.full((S, T, H, W), np.inf, np.float32)
+        goal_success = np.zeros((S, T, H, W), bool)
+        goal_min = np.zeros((S, T), np.float32)
+        for k, (grid, goals) in enumerate(zip(self.grids, self.goals)):
+            for t, goal in enumerate(goals):
+                d = navgrid.geodesic(grid, goal.success)
+                goal_dist[k, t] = pad(d.astype(np.float32), np.inf)
+                goal_success[k, t] = pad(goal.success & grid.free, False)
+                outside = np.isfinite(d) & ~goal.success & grid.free
+                goal_min[k, t] = d[outside].min() if outside.any() else 0.0
+        diameter = np.array([navgrid.diameter(g) for g in self.grids], np.float32)
+        n_obs = max(max(len(g.obstacles) for g in self.grids), 1)
+        obstacles = np.tile(np.array([1e6, 1e6, 1e6 + 1, 1e6 + 1], np.float32), (S, n_obs, 1))
+        for k, g in enumerate(self.grids):
+            obstacles[k, : len(g.obstacles)] = g.obstacles
+        pose = np.array([[g.pose for g in goals] for goals in self.goals], np.float32)
+        tscene = np.array([[g.scene for g in goals] for goals in self.goals], np.int32)
+        flat = render_poses(geometry, self.spec, tscene.reshape(-1), pose.reshape(-1, 4), self.cfg.camera_height)
+        h = w = self.cfg.render.image_size
+        return WorldArrays(
+            geometry=geometry,
+            obstacles=jnp.asarray(obstacles),
+            grid_origin=jnp.asarray(np.stack([g.origin for g in self.grids]).astype(np.float32)),
+            free=jnp.asarray(free),
+            diameter=jnp.asarray(diameter),
+            goal_dist=jnp.asarray(goal_dist),
+            goal_success=jnp.asarray(goal_success),
+            goal_min_dist=jnp.asarray(goal_min),
+            target_pose=jnp.asarray(pose),
+            target_scene=jnp.asarray(tscene),
+            target_rgb=flat.rgb.reshape(S, T, h, w, 3),
+            target_depth=flat.depth.reshape(S, T, h, w),
+            target_seg=flat.cls.astype(jnp.uint8).reshape(S, T, h, w),
+        )
+
+
+def render_poses(geometry, spec: render.CameraSpec, scene, pose, camera_height: float, chunk: int = 64):
+    """Render poses [N, 4] (x, y, yaw, tilt) in scenes [N] (host loop over chunks)."""
+    fn = jax.jit(lambda s, p: render.render_batch(geometry, s, cam_position(p, camera_height), p[:, 2], p[:, 3], spec))
+    n = len(scene)
+    outs = []
+    for i in range(0, n, chunk):
+        s = np.zeros(chunk, np.int32)
+        p = np.zeros((chunk, 4), np.float32)
+        m = min(chunk, n - i)
+        s[:m], p[:m] = scene[i : i + m], pose[i : i + m]
+        outs.append(jax.tree_util.tree_map(lambda a: a[:m], fn(jnp.asarray(s), jnp.asarray(p))))
+    return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *outs)
+
+
+def cam_position(pose, camera_height: float):
+    """World camera position [..., 3] of agent poses [..., 4]."""
+    return jnp.concatenate([pose[..., :2], jnp.full(pose.shape[:-1] + (1,), camera_height, pose.dtype)], -1)
+
+
+SEGMENTATION_COLORS = class_colors()
