@@ -1,0 +1,463 @@
+"""Tests of the JAX ray-cast renderer against MuJoCo's own ray caster (CPU).
+
+Every pixel ray of every frame is also cast with `mujoco.mj_multiRay` (the batched
+form of `mj_ray`) on the very MJCF model the renderer's geometry was packed from;
+depth and geom id must agree. Images are small and non-square, and the compiled
+renderers are shared between tests, so the whole module takes well under a minute.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from a2catvn_jax import camera, navgrid
+from a2catvn_jax.geometry import Geometry, pack, take
+from a2catvn_jax.render import CameraSpec, Frame, render, render_batch
+from a2catvn_jax.scenes import (
+    AGENT_RADIUS,
+    CLASS_ID,
+    CLASS_NAMES,
+    compile_scene,
+    layout_of,
+    make_scenes,
+    scene_from_mjcf,
+    scene_to_mjcf,
+)
+
+H, W, FOVY = 24, 32, 60.0  # non-square: exercises the horizontal field of view
+SPEC = CameraSpec(H, W, FOVY)
+CAM_Z = 1.0
+POSES_PER_SCENE = 8
+TOL = 1e-3  # metres
+GRID_RES = 0.1
+BODY_HEIGHT = 1.5  # free cells then have nothing around the camera at CAM_Z
+
+
+# A hand-written scene of rotated primitives: oriented boxes (one rotated by exactly
+# 90 degrees, which the packer turns into a world-aligned box), spheres, ellipsoids
+# and capsules, some in a rotated static child body, colours from materials too.
+PRIMITIVES_XML = """
+<mujoco model="primitives">
+  <compiler angle="radian"/>
+  <asset>
+    <material name="wood" rgba="0.55 0.35 0.2 1"/>
+    <material name="cloth" rgba="0.2 0.3 0.7 1"/>
+  </asset>
+  <worldbody>
+    <light pos="0 0 3" dir="0 0 -1"/>
+    <geom name="floor_0" type="box" size="4 4 0.05" pos="0 0 -0.05" rgba="0.6 0.6 0.55 1"/>
+    <geom name="wall_0" type="box" size="0.05 4 1.2" pos="4.05 0 1.2" rgba="0.8 0.8 0.8 1"/>
+    <geom name="wall_1" type="box" size="1.5 0.05 1.0" pos="-1.5 3.2 1.0" euler="0 0 0.5"
+          rgba="0.7 0.75 0.8 1"/>
+    <geom name="table_0" type="box" size="0.6 0.4 0.04" pos="2 0.6 0.75" euler="0.15 -0.1 0.4"
+          material="wood"/>
+    <geom name="cabinet_0" type="box" size="0.3 0.25 0.5" pos="1.8 -1.6 0.9"
+          quat="0.8 0.3 0.4 0.33" rgba="0.3 0.6 0.3 1"/>
+    <geom name="bed_3" type="box" size="1.0 0.7 0.25" pos="-1.8 -1.8 0.25"
+          euler="0 0 1.5707963267948966" material="cloth"/>
+    <geom name="plant_0" type="sphere" size="0.3" pos="0.5 2.2 1.1" rgba="0.2 0.7 0.2 1"/>
+    <geom name="sofa_0" type="ellipsoid" size="0.6 0.3 0.35" pos="-2.2 0.8 0.8"
+          euler="0.3 0.2 0.9" rgba="0.6 0.2 0.2 1"/>
+    <geom name="lamp_0" type="capsule" size="0.08 0.55" pos="1.0 -0.5 1.0" euler="0.6 0.35 0"
+          rgba="0.9 0.9 0.3 1"/>
+    <geom name="chair_0" type="capsule" fromto="-0.8 -2.6 0.9 0.4 -2.2 1.3" size="0.12"
+          rgba="0.4 0.3 0.8 1"/>
+    <body name="stand" pos="2.6 2.4 0.9" euler="0.2 0 -0.7">
+      <geom name="object_0" type="ellipsoid" size="0.25 0.12 0.4" pos="0.2 0 0.1"
+            euler="0 0.5 0" rgba="0.9 0.5 0.1 1"/>
+      <geom name="shelf_0" type="box" size="0.4 0.15 0.3" pos="-0.4 0 0" euler="0.1 0.2 0.3"
+            material="wood"/>
+      <geom name="lamp_1" type="capsule" size="0.1 0.3" pos="0 0.4 0.3" quat="1 1 0 0"
+            rgba="1 1 1 1"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+# ----------------------------------------------------------------------------------
+# Batches of frames with their mj_ray reference.
+
+
+@dataclasses.dataclass
+class Batch:
+    models: list  # MjModel per scene
+    datas: list  # MjData per scene, after mj_forward
+    geometry: Geometry  # batched over scenes
+    spec: CameraSpec  # settings of the exact (culled + fallback) path
+    scene: np.ndarray  # int32 [B]
+    pos: np.ndarray  # float32 [B, 3]
+    yaw: np.ndarray  # float32 [B]
+    tilt: np.ndarray  # float32 [B]
+    dirs: np.ndarray  # float64 [B, H, W, 3]: the renderer's own unit pixel rays
+    ref_geom: np.ndarray  # int32 [B, H, W]: mj_ray's geom id, -1 where it misses
+    ref_dist: np.ndarray  # float64 [B, H, W]: mj_ray's distance, -1 where it misses
+    pair: tuple = ()  # two frames with one pose in scenes 0 and 1
+
+    def args(self):
+        return (
+            self.geometry,
+            jnp.asarray(self.scene),
+            jnp.asarray(self.pos),
+            jnp.asarray(self.yaw),
+            jnp.asarray(self.tilt),
+        )
+
+
+def _make_batch(models, closed, heights, spec, scene, pos, yaw, tilt, pair=()) -> Batch:
+    scene = np.asarray(scene, np.int32)
+    pos = np.asarray(pos, np.float32)
+    yaw = np.asarray(yaw, np.float32)
+    tilt = np.asarray(tilt, np.float32)
+    datas = []
+    for m in models:
+        d = mujoco.MjData(m)
+        mujoco.mj_forward(m, d)
+        datas.append(d)
+    rays = jax.vmap(lambda y, t: camera.ray_directions(y, t, H, W, FOVY))
+    dirs = np.asarray(rays(jnp.asarray(yaw), jnp.asarray(tilt)), np.float64)
+    n = H * W
+    ref_geom = np.zeros((len(scene), n), np.int32)
+    ref_dist = np.zeros((len(scene), n), np.float64)
+    for b, k in enumerate(scene):
+        mujoco.mj_multiRay(
+            models[k], datas[k], pos[b].astype(np.float64), dirs[b].reshape(-1).copy(),
+            None, 1, -1, ref_geom[b], ref_dist[b], None, n, mujoco.mjMAXVAL,
+        )
+    return Batch(
+        models=models,
+        datas=datas,
+        geometry=pack(models, closed, heights),
+        spec=spec,
+        scene=scene,
+        pos=pos,
+        yaw=yaw,
+        tilt=tilt,
+        dirs=dirs,
+        ref_geom=ref_geom.reshape(-1, H, W),
+        ref_dist=ref_dist.reshape(-1, H, W),
+        pair=pair,
+    )
+
+
+def _free_points(scene) -> np.ndarray:
+    grid = navgrid.build(scene, GRID_RES, AGENT_RADIUS, BODY_HEIGHT)
+    return grid.centres()[grid.free]
+
+
+@pytest.fixture(scope="module")
+def generated() -> Batch:
+    """Three houses, a single room and a maze, one geom layout, one batch; 8 random
+    poses per scene, plus one pose shared by houses 0 and 1."""
+    scenes = (
+        make_scenes("house", 2, 11, grid=(2, 2))
+        + make_scenes("house", 1, 12, grid=(2, 3))
+        + make_scenes("room", 1, 13)
+        + make_scenes("maze", 1, 14)
+    )
+    layout = layout_of(scenes)
+    models = [compile_scene(scene_to_mjcf(s, layout)) for s in scenes]
+    rng = np.random.default_rng(0)
+    scene, pos, yaw, tilt = [], [], [], []
+
+    def add(k, xy, y, t):
+        scene.append(k)
+        pos.append([xy[0], xy[1], CAM_Z])
+        yaw.append(y)
+        tilt.append(t)
+
+    free = [_free_points(s) for s in scenes]
+    for k, pts in enumerate(free):
+        for _ in range(POSES_PER_SCENE):
+            add(k, pts[rng.integers(len(pts))], rng.uniform(-np.pi, np.pi), rng.uniform(-0.5, 0.5))
+    # One pose free in both house 0 and house 1, rendered in each.
+    both = np.array([p for p in free[0] if np.any(np.all(np.abs(free[1] - p) < 1e-6, -1))])
+    assert len(both), "houses 0 and 1 share no free cell"
+    xy, y, t = both[rng.integers(len(both))], rng.uniform(-np.pi, np.pi), 0.1
+    pair = (len(scene), len(scene) + 1)
+    add(0, xy, y, t)
+    add(1, xy, y, t)
+    return _make_batch(
+        models, [s.closed for s in scenes], [s.height for s in scenes], SPEC, scene, pos, yaw, tilt, pair
+    )
+
+
+@pytest.fixture(scope="module")
+def primitives() -> Batch:
+    """The hand-written scene of rotated primitives (not closed), cameras looking
+    roughly at its objects."""
+    model = compile_scene(PRIMITIVES_XML)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, i) for i in range(model.ngeom)]
+    targets = [data.geom_xpos[i, :2].copy() for i, n in enumerate(names) if not n.startswith(("floor", "wall"))]
+    pts = _free_points(scene_from_mjcf(PRIMITIVES_XML))
+    rng = np.random.default_rng(1)
+    num = 12
+    pos, yaw, tilt = [], [], []
+    for _ in range(num):
+        xy = pts[rng.integers(len(pts))]
+        to = targets[rng.integers(len(targets))] - xy
+        pos.append([xy[0], xy[1], CAM_Z])
+        yaw.append(np.arctan2(to[1], to[0]) + rng.uniform(-0.4, 0.4))
+        tilt.append(rng.uniform(-0.5, 0.5))
+    # Few candidates per tile: culling (top-k included) runs for every family, and
+    # frames whose tiles overflow fall back to brute force.
+    spec = CameraSpec(H, W, FOVY, candidates=2, fallback_frames=num)
+    return _make_batch([model], [False], [2.4], spec, np.zeros(num), pos, yaw, tilt)
+
+
+@functools.lru_cache(maxsize=None)
+def _exact_renderer(spec: CameraSpec):
+    return jax.jit(functools.partial(render_batch, spec=spec))
+
+
+@functools.lru_cache(maxsize=None)
+def _brute_renderer(spec: CameraSpec):
+    one = functools.partial(render, spec=spec, culled=False)
+
+    def run(geometry, scene, pos, yaw, tilt):
+        return jax.vmap(one)(take(geometry, scene), pos, yaw, tilt)
+
+    return jax.jit(run)
+
+
+def _numpy(frame: Frame) -> Frame:
+    return Frame(*(np.asarray(a) for a in frame))
+
+
+@pytest.fixture(scope="module")
+def frames(generated, primitives):
+    """frames(batch name, path) -> numpy Frame, rendered once per module.
+    path "exact": render_batch; "brute": render(..., culled=False)."""
+    batches = {"generated": generated, "primitives": primitives}
+    memo = {}
+
+    def get(name: str, path: str) -> Frame:
+        if (name, path) not in memo:
+            b = batches[name]
+            fn = _exact_renderer(b.spec) if path == "exact" else _brute_renderer(b.spec)
+            memo[name, path] = _numpy(fn(*b.args()))
+        return memo[name, path]
+
+    return get
+
+
+# ----------------------------------------------------------------------------------
+# 1. Depth and geom id vs mj_ray.
+
+STATS = {}  # (batch, path) -> (max depth error, frames, rays, hits, tied geom-id mismatches)
+
+
+def _geom_name(m, g) -> str:
+    return mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, int(g)) if g >= 0 else "-"
+
+
+def _compare_with_mujoco(b: Batch, f: Frame):
+    """Failures (strings) and statistics of frame f against b's mj_ray reference."""
+    hit = b.ref_geom >= 0
+    err = np.abs(f.depth.astype(np.float64) - b.ref_dist)
+    bad = np.zeros(hit.shape, bool)
+    why = np.full(hit.shape, "", object)
+    # Missed by MuJoCo: nothing hit here either.
+    miss_bad = ~hit & ((f.geom != -1) | (f.depth != 0))
+    bad |= miss_bad
+    why[miss_bad] = "mj_ray misses"
+    # Hit: same distance, and the same geom unless ours is hit at the same distance.
+    depth_bad = hit & ~(err <= TOL)
+    bad |= depth_bad
+    why[depth_bad] = "depth differs"
+    ties = 0
+    for bi, i, j in zip(*np.nonzero(hit & ~depth_bad & (f.geom != b.ref_geom))):
+        k, g = b.scene[bi], int(f.geom[bi, i, j])
+        m, d = b.models[k], b.datas[k]
+        t = -1.0
+        if g >= 0 and not _geom_name(m, g).startswith("pad_"):
+            t = mujoco.mju_rayGeom(
+                d.geom_xpos[g], d.geom_xmat[g], m.geom_size[g], b.pos[bi].astype(np.float64),
+                b.dirs[bi, i, j], int(m.geom_type[g]), None,
+            )
+        if t >= 0 and abs(t - b.ref_dist[bi, i, j]) <= TOL:
+            ties += 1
+        else:
+            bad[bi, i, j] = True
+            why[bi, i, j] = f"geom differs (mju_rayGeom of ours: {t:.5f})"
+    lines = []
+    for bi, i, j in zip(*np.nonzero(bad)):
+        k = b.scene[bi]
+        m = b.models[k]
+        lines.append(
+            f"frame {bi} (scene {k}, pos {b.pos[bi].tolist()}, yaw {b.yaw[bi]:.4f}, tilt {b.tilt[bi]:.4f}) "
+            f"pixel (row {i}, col {j}): {why[bi, i, j]}; ours geom {f.geom[bi, i, j]} "
+            f"{_geom_name(m, f.geom[bi, i, j])!r} depth {f.depth[bi, i, j]:.5f}, mj_ray geom "
+            f"{b.ref_geom[bi, i, j]} {_geom_name(m, b.ref_geom[bi, i, j])!r} dist {b.ref_dist[bi, i, j]:.5f}"
+        )
+    max_err = float(np.max(np.where(hit, err, 0.0)))
+    return lines, (max_err, hit.shape[0], hit.size, int(hit.sum()), ties)
+
+
+@pytest.mark.parametrize("path", ["exact", "brute"])
+@pytest.mark.parametrize("name", ["generated", "primitives"])
+def test_depth_and_geom_match_mj_ray(name, path, frames, request):
+    b = request.getfixturevalue(name)
+    f = frames(name, path)
+    assert f.depth.shape == f.geom.shape == (len(b.scene), H, W)
+    # The reference is not degenerate: most rays hit, and in the open scene some miss.
+    assert np.mean(b.ref_geom >= 0) > (0.99 if name == "generated" else 0.3)
+    if name == "primitives":
+        assert np.any(b.ref_geom < 0)
+        hit_types = {int(b.models[0].geom_type[g]) for g in np.unique(b.ref_geom[b.ref_geom >= 0])}
+        g = mujoco.mjtGeom
+        assert hit_types == {int(g.mjGEOM_BOX), int(g.mjGEOM_SPHERE), int(g.mjGEOM_CAPSULE), int(g.mjGEOM_ELLIPSOID)}
+    lines, stats = _compare_with_mujoco(b, f)
+    STATS[name, path] = stats
+    print(f"\n{name}/{path}: max depth error {stats[0]:.3g} m over {stats[3]} hits of {stats[2]} rays "
+          f"({stats[1]} frames), {stats[4]} geom-id ties")
+    assert not lines, f"{len(lines)} pixels disagree with mj_ray:\n" + "\n".join(lines[:20])
+
+
+# ----------------------------------------------------------------------------------
+# 2. Culling changes nothing.
+
+
+def test_culling_changes_nothing(generated, frames):
+    b = generated
+    n = len(b.scene)
+    reference = _numpy(_exact_renderer(dataclasses.replace(SPEC, candidates=0))(*b.args()))
+    assert not reference.fallback.any()
+    runs = {
+        "candidates=24": frames("generated", "exact"),
+        # Too few candidates: many frames fail their check. With fallback_frames >= B
+        # they are re-rendered one by one ("some frames" branch); with 1, the whole
+        # batch is ("whole batch" branch).
+        "candidates=4, fallback_frames=B": _numpy(
+            _exact_renderer(dataclasses.replace(SPEC, candidates=4, fallback_frames=n))(*b.args())
+        ),
+        "candidates=4, fallback_frames=1": _numpy(
+            _exact_renderer(dataclasses.replace(SPEC, candidates=4, fallback_frames=1))(*b.args())
+        ),
+    }
+    few = runs["candidates=4, fallback_frames=1"].fallback
+    assert few.sum() >= 2, "candidates=4 should make several frames fall back"
+    np.testing.assert_array_equal(runs["candidates=4, fallback_frames=B"].fallback, few)
+    for label, f in runs.items():
+        np.testing.assert_array_equal(f.geom, reference.geom, err_msg=label)
+        np.testing.assert_allclose(f.depth, reference.depth, rtol=0, atol=1e-5, err_msg=label)
+        np.testing.assert_array_equal(f.cls, reference.cls, err_msg=label)
+        np.testing.assert_array_equal(f.rgb, reference.rgb, err_msg=label)
+
+
+# ----------------------------------------------------------------------------------
+# 3. Scenes of one batch keep their own geometry.
+
+
+def test_scenes_in_one_batch_render_their_own_geometry(generated, frames):
+    b = generated
+    f = frames("generated", "exact")
+    p, q = b.pair
+    assert (b.scene[p], b.scene[q]) == (0, 1)
+    assert np.array_equal(b.pos[p], b.pos[q]) and b.yaw[p] == b.yaw[q] and b.tilt[p] == b.tilt[q]
+    # MuJoCo sees different rooms from this pose in the two houses...
+    ref_differs = np.abs(b.ref_dist[p] - b.ref_dist[q]) > 0.05
+    assert ref_differs.mean() > 0.1
+    # ... and so does the renderer: each frame matches its own house, not the other.
+    for own, other in ((p, q), (q, p)):
+        assert np.all(np.abs(f.depth[own] - b.ref_dist[own]) <= TOL)
+        assert np.mean(np.abs(f.depth[own] - b.ref_dist[other]) > 0.05) > 0.1
+    assert np.mean(np.abs(f.depth[p] - f.depth[q]) > 0.05) > 0.1
+    assert np.any(f.rgb[p] != f.rgb[q])
+
+
+# ----------------------------------------------------------------------------------
+# 4. Segmentation and image formats.
+
+
+@pytest.mark.parametrize("name", ["generated", "primitives"])
+def test_segmentation_and_formats(name, frames, request):
+    b = request.getfixturevalue(name)
+    f = frames(name, "exact")
+    n = len(b.scene)
+    assert f.rgb.shape == (n, H, W, 3) and f.rgb.dtype == np.uint8
+    assert f.depth.shape == (n, H, W) and f.depth.dtype == np.float32
+    assert f.geom.dtype == np.int32 and f.cls.dtype == np.int32
+    assert f.fallback.shape == (n,) and f.fallback.dtype == np.bool_
+    cls_table = np.asarray(b.geometry.cls)  # [S, G]
+    hit = f.geom >= 0
+    expected = np.where(hit, cls_table[b.scene[:, None, None], np.maximum(f.geom, 0)], 0)
+    np.testing.assert_array_equal(f.cls, expected)
+    assert np.all(f.cls[hit] > 0), "every geom hit has a semantic class"
+    # The class is the one the geom's MuJoCo name starts with ("bed_3": bed).
+    for bi in range(n):
+        m = b.models[b.scene[bi]]
+        for g in np.unique(f.geom[bi][hit[bi]]):
+            name, cls = _geom_name(m, g), CLASS_NAMES[cls_table[b.scene[bi], g]]
+            assert name == cls or name.startswith((cls + "_", cls + "/")), (name, cls)
+    # Nothing hit: black, depth 0, class 0.
+    assert np.all(f.rgb[~hit] == 0) and np.all(f.depth[~hit] == 0) and np.all(f.cls[~hit] == 0)
+    assert np.all(f.depth[hit] > 0) and np.all(f.rgb[hit].max(-1) > 0)
+    if name == "primitives":
+        assert (~hit).any()
+        m = b.models[0]
+        bed = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "bed_3")
+        assert cls_table[0, bed] == CLASS_ID["bed"]
+        assert np.any(f.geom == bed), "no camera sees the bed"
+        assert np.all(f.cls[f.geom == bed] == CLASS_ID["bed"])
+        # Material colours are the geom's colour.
+        table = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "table_0")
+        np.testing.assert_allclose(np.asarray(b.geometry.rgb)[0, table], [0.55, 0.35, 0.2], atol=1e-6)
+
+
+# ----------------------------------------------------------------------------------
+# 5. Camera conventions.
+
+
+def test_camera_conventions():
+    d = np.asarray(camera.ray_directions(0.0, 0.0, H, W, FOVY))
+    assert d.shape == (H, W, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-6)
+    centre = d[H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1].mean((0, 1))
+    np.testing.assert_allclose(centre / np.linalg.norm(centre), [1.0, 0.0, 0.0], atol=1e-6)
+    assert np.all(d[0, :, 2] > 0) and np.all(d[-1, :, 2] < 0)  # row 0 is the top
+    assert np.all(d[:, 0, 1] > 0) and np.all(d[:, -1, 1] < 0)  # column 0 is the left (+y)
+    # Vertical field of view: the top and bottom image edges are fovy apart; the
+    # horizontal one follows from square pixels.
+    half = np.tan(np.deg2rad(FOVY / 2))
+    np.testing.assert_allclose(d[0, W // 2, 2] / d[0, W // 2, 0], half * (1 - 1 / H), rtol=1e-5)
+    np.testing.assert_allclose(d[H // 2, 0, 1] / d[H // 2, 0, 0], half * W / H * (1 - 1 / W), rtol=1e-5)
+    up = np.asarray(camera.ray_directions(0.3, 0.4, H, W, FOVY))
+    centre = up[H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1].mean((0, 1))
+    centre /= np.linalg.norm(centre)
+    assert centre[2] > 0
+    np.testing.assert_allclose(centre, [np.cos(0.3) * np.cos(0.4), np.sin(0.3) * np.cos(0.4), np.sin(0.4)], atol=1e-6)
+
+
+@pytest.mark.parametrize("yaw, tilt", [(0.0, 0.0), (0.7, 0.3), (-2.5, -0.45)])
+def test_rays_match_mujoco_camera(yaw, tilt):
+    """Pixel rays equal those of MuJoCo's camera "agent_cam" (scene_to_mjcf) with the
+    agent body turned by yaw about z and then pitched up by tilt."""
+    scene = make_scenes("room", 1, 3)[0]
+    m = compile_scene(scene_to_mjcf(scene, fovy=FOVY))
+    d = mujoco.MjData(m)
+    qz = np.array([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)])
+    qy = np.array([np.cos(-tilt / 2), 0, np.sin(-tilt / 2), 0])
+    quat = np.zeros(4)
+    mujoco.mju_mulQuat(quat, qz, qy)
+    d.mocap_quat[0] = quat
+    mujoco.mj_forward(m, d)
+    cam = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, "agent_cam")
+    assert m.cam_fovy[cam] == FOVY
+    xmat = d.cam_xmat[cam].reshape(3, 3)  # columns: camera x (right), y (up), z (backwards)
+    half = np.tan(np.deg2rad(m.cam_fovy[cam]) / 2)
+    x = ((np.arange(W) + 0.5) / W * 2 - 1) * half * W / H
+    y = (1 - (np.arange(H) + 0.5) / H * 2) * half
+    local = np.stack(np.broadcast_arrays(x[None, :], y[:, None], -1.0), -1)
+    expected = local @ xmat.T
+    expected /= np.linalg.norm(expected, axis=-1, keepdims=True)
+    np.testing.assert_allclose(np.asarray(camera.ray_directions(yaw, tilt, H, W, FOVY)), expected, atol=1e-6)
