@@ -262,7 +262,10 @@ class NavEnv:
         hits = (tn <= tf) & (tf >= 0) & (tn <= 1.0)
         first = jnp.min(jnp.where(hits, tn, 1.0))
         length = jnp.linalg.norm(d)
-        return jnp.clip(first - _CONTACT_GAP / jnp.maximum(length, 1e-9), 0.0, 1.0)
+        # Back off by the contact gap only when something is in the way: an
+        # unobstructed move goes the whole way (grid moves rely on frac == 1).
+        stop = jnp.clip(first - _CONTACT_GAP / jnp.maximum(length, 1e-9), 0.0, 1.0)
+        return jnp.where(jnp.any(hits), stop, 1.0)
 
     def _move(self, scene, pose, action, key):
         """New pose after `action` and the distance actually travelled."""
