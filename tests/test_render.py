@@ -24,6 +24,8 @@ from a2catvn_jax.scenes import (
     AGENT_RADIUS,
     CLASS_ID,
     CLASS_NAMES,
+    Geom,
+    Scene,
     compile_scene,
     layout_of,
     make_scenes,
@@ -100,6 +102,7 @@ class Batch:
     ref_geom: np.ndarray  # int32 [B, H, W]: mj_ray's geom id, -1 where it misses
     ref_dist: np.ndarray  # float64 [B, H, W]: mj_ray's distance, -1 where it misses
     pair: tuple = ()  # two frames with one pose in scenes 0 and 1
+    slit: int = -1  # the frame that looks through the slit of _slit_scene
 
     def args(self):
         return (
@@ -111,7 +114,7 @@ class Batch:
         )
 
 
-def _make_batch(models, closed, heights, spec, scene, pos, yaw, tilt, pair=()) -> Batch:
+def _make_batch(models, closed, heights, spec, scene, pos, yaw, tilt, **extra) -> Batch:
     scene = np.asarray(scene, np.int32)
     pos = np.asarray(pos, np.float32)
     yaw = np.asarray(yaw, np.float32)
@@ -143,8 +146,44 @@ def _make_batch(models, closed, heights, spec, scene, pos, yaw, tilt, pair=()) -
         dirs=dirs,
         ref_geom=ref_geom.reshape(-1, H, W),
         ref_dist=ref_dist.reshape(-1, H, W),
-        pair=pair,
+        **extra,
     )
+
+
+def _box(name, lo, hi, rgba):
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    return Geom("box", (lo + hi) / 2, (hi - lo) / 2, rgba, name.split("_")[0], name=name)
+
+
+def _slit_scene() -> Scene:
+    """A closed room split by a wall with a narrow vertical slit, a cabinet behind it.
+
+    Seen from SLIT_POSE, the slit lies strictly inside the wedge of one culling tile:
+    both edges of the wedge meet the wall, so culling bounds the tile's reach just
+    past the wall and drops the cabinet, yet the tile's middle rays pass through the
+    slit and hit it. Only the renderer's verification of each ray can notice. Floor
+    and ceiling reach far beyond the walls, so that without the cabinet and the far
+    wall those rays still hit something (instead of nothing, which is easy to flag)."""
+    grey, white, brown = (0.7, 0.7, 0.7, 1), (0.9, 0.9, 0.9, 1), (0.5, 0.3, 0.1, 1)
+    h, s = 2.4, 0.09  # ceiling height, slit half-width
+    geoms = [
+        _box("floor_0", (-0.1, -20.0, -0.05), (500.0, 20.0, 0.0), grey),
+        _box("ceiling_0", (-0.1, -20.0, h), (500.0, 20.0, h + 0.05), white),
+        _box("wall_0", (-0.1, -2.0, 0.0), (0.0, 2.0, h), white),
+        _box("wall_1", (7.0, -2.0, 0.0), (7.1, 2.0, h), white),
+        _box("wall_2", (-0.1, -2.1, 0.0), (7.1, -2.0, h), white),
+        _box("wall_3", (-0.1, 2.0, 0.0), (7.1, 2.1, h), white),
+        _box("wall_4", (2.95, -2.0, 0.0), (3.05, -s, h), white),
+        _box("wall_5", (2.95, s, 0.0), (3.05, 2.0, h), white),
+        _box("cabinet_0", (4.3, -0.4, 0.0), (4.7, 0.4, 1.6), brown),
+    ]
+    return Scene("slit", geoms, [], (0.0, -2.0, 7.0, 2.0), h, closed=True)
+
+
+# Camera at x = 1 turned left by the angle of the centre of image columns 16..19 (one
+# culling tile): those columns then look straight along +x through the slit.
+_TILE_CENTRE = float(np.arctan((18.0 / W * 2.0 - 1.0) * np.tan(np.deg2rad(FOVY / 2)) * W / H))
+SLIT_POSE = ((1.0, 0.0, CAM_Z), _TILE_CENTRE, 0.0)
 
 
 def _free_points(scene) -> np.ndarray:
@@ -155,13 +194,15 @@ def _free_points(scene) -> np.ndarray:
 @pytest.fixture(scope="module")
 def generated() -> Batch:
     """Three houses, a single room and a maze, one geom layout, one batch; 8 random
-    poses per scene, plus one pose shared by houses 0 and 1."""
+    poses per scene, plus one pose shared by houses 0 and 1, plus the slit scene."""
     scenes = (
         make_scenes("house", 2, 11, grid=(2, 2))
         + make_scenes("house", 1, 12, grid=(2, 3))
         + make_scenes("room", 1, 13)
         + make_scenes("maze", 1, 14)
     )
+    free = [_free_points(s) for s in scenes]
+    scenes.append(_slit_scene())
     layout = layout_of(scenes)
     models = [compile_scene(scene_to_mjcf(s, layout)) for s in scenes]
     rng = np.random.default_rng(0)
@@ -173,7 +214,6 @@ def generated() -> Batch:
         yaw.append(y)
         tilt.append(t)
 
-    free = [_free_points(s) for s in scenes]
     for k, pts in enumerate(free):
         for _ in range(POSES_PER_SCENE):
             add(k, pts[rng.integers(len(pts))], rng.uniform(-np.pi, np.pi), rng.uniform(-0.5, 0.5))
@@ -184,8 +224,11 @@ def generated() -> Batch:
     pair = (len(scene), len(scene) + 1)
     add(0, xy, y, t)
     add(1, xy, y, t)
+    slit = len(scene)
+    add(len(scenes) - 1, *SLIT_POSE)
     return _make_batch(
-        models, [s.closed for s in scenes], [s.height for s in scenes], SPEC, scene, pos, yaw, tilt, pair
+        models, [s.closed for s in scenes], [s.height for s in scenes], SPEC, scene, pos, yaw, tilt,
+        pair=pair, slit=slit,
     )
 
 
@@ -253,9 +296,6 @@ def frames(generated, primitives):
 # ----------------------------------------------------------------------------------
 # 1. Depth and geom id vs mj_ray.
 
-STATS = {}  # (batch, path) -> (max depth error, frames, rays, hits, tied geom-id mismatches)
-
-
 def _geom_name(m, g) -> str:
     return mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, int(g)) if g >= 0 else "-"
 
@@ -317,7 +357,6 @@ def test_depth_and_geom_match_mj_ray(name, path, frames, request):
         g = mujoco.mjtGeom
         assert hit_types == {int(g.mjGEOM_BOX), int(g.mjGEOM_SPHERE), int(g.mjGEOM_CAPSULE), int(g.mjGEOM_ELLIPSOID)}
     lines, stats = _compare_with_mujoco(b, f)
-    STATS[name, path] = stats
     print(f"\n{name}/{path}: max depth error {stats[0]:.3g} m over {stats[3]} hits of {stats[2]} rays "
           f"({stats[1]} frames), {stats[4]} geom-id ties")
     assert not lines, f"{len(lines)} pixels disagree with mj_ray:\n" + "\n".join(lines[:20])
@@ -329,29 +368,42 @@ def test_depth_and_geom_match_mj_ray(name, path, frames, request):
 
 def test_culling_changes_nothing(generated, frames):
     b = generated
-    n = len(b.scene)
     reference = _numpy(_exact_renderer(dataclasses.replace(SPEC, candidates=0))(*b.args()))
     assert not reference.fallback.any()
     runs = {
         "candidates=24": frames("generated", "exact"),
-        # Too few candidates: many frames fail their check. With fallback_frames >= B
-        # they are re-rendered one by one ("some frames" branch); with 1, the whole
-        # batch is ("whole batch" branch).
-        "candidates=4, fallback_frames=B": _numpy(
-            _exact_renderer(dataclasses.replace(SPEC, candidates=4, fallback_frames=n))(*b.args())
-        ),
+        # Too few candidates: most frames fail their check, more than fallback_frames,
+        # so the whole batch is re-rendered.
         "candidates=4, fallback_frames=1": _numpy(
             _exact_renderer(dataclasses.replace(SPEC, candidates=4, fallback_frames=1))(*b.args())
         ),
     }
-    few = runs["candidates=4, fallback_frames=1"].fallback
-    assert few.sum() >= 2, "candidates=4 should make several frames fall back"
-    np.testing.assert_array_equal(runs["candidates=4, fallback_frames=B"].fallback, few)
+    # With 24 candidates a few frames fail (the slit frame always: see _slit_scene) and
+    # are re-rendered on their own, scattered back among frames that were fine.
+    some = runs["candidates=24"].fallback
+    assert some[b.slit]
+    assert 1 <= some.sum() < SPEC.fallback_frames, "the 'some frames' branch is not exercised"
+    many = runs["candidates=4, fallback_frames=1"].fallback
+    assert many.sum() >= 2, "candidates=4 should make several frames fall back"
+    assert np.all(many >= some)
     for label, f in runs.items():
         np.testing.assert_array_equal(f.geom, reference.geom, err_msg=label)
         np.testing.assert_allclose(f.depth, reference.depth, rtol=0, atol=1e-5, err_msg=label)
         np.testing.assert_array_equal(f.cls, reference.cls, err_msg=label)
         np.testing.assert_array_equal(f.rgb, reference.rgb, err_msg=label)
+
+
+def test_ray_check_catches_what_culling_misses(generated):
+    """In the slit scene culling alone gets the cabinet behind the slit wrong; the
+    frame must be flagged (render_batch then re-renders it: test above)."""
+    b, k = generated, generated.slit
+    cabinet = mujoco.mj_name2id(b.models[b.scene[k]], mujoco.mjtObj.mjOBJ_GEOM, "cabinet_0")
+    seen = b.ref_geom[k] == cabinet
+    assert seen.any() and np.all(np.nonzero(seen)[1] // SPEC.tile == 16 // SPEC.tile)
+    culled = jax.jit(functools.partial(render, spec=SPEC, culled=True))
+    f = _numpy(culled(take(b.geometry, int(b.scene[k])), *(jnp.asarray(a[k]) for a in (b.pos, b.yaw, b.tilt))))
+    assert not np.any(f.geom == cabinet), "culling no longer drops the cabinet: the scene tests nothing"
+    assert f.fallback
 
 
 # ----------------------------------------------------------------------------------
