@@ -5,8 +5,7 @@ layout (same count of geoms of each type, in the order boxes, spheres, capsules,
 ellipsoids). World poses come from MuJoCo's own forward kinematics (`geom_xpos`,
 `geom_xmat`), so the renderer sees exactly the geometry `mujoco.mj_ray` sees.
 
-The renderer groups geoms into three intersection families: boxes, ellipsoids
-(spheres are ellipsoids with equal radii) and capsules.
+The renderer groups geoms into intersection families (see `FAMILIES`).
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ from xml.sax.saxutils import quoteattr
 import mujoco
 import numpy as np
 
-from .spec import CLASS_NAMES, GEOM_TYPES, Geom, Scene
+from .spec import CLASS_NAMES, GEOM_TYPES, Geom, Scene, class_of_name
 
 PAD_PREFIX = "pad_"
 PAD_DEPTH = -100.0  # padding geom i of a type sits at z = PAD_DEPTH - i
@@ -26,7 +26,6 @@ AGENT_CAMERA = "agent_cam"
 # Classes a geom may carry ("void" means "nothing hit" and is not a geom class).
 GEOM_CLASSES: tuple[str, ...] = tuple(c for c in CLASS_NAMES if c != "void")
 # Longest first, so that "door_frame_2" is a door_frame and not a "door".
-_CLASSES_BY_LENGTH = sorted(GEOM_CLASSES, key=len, reverse=True)
 
 _MJ_TYPE = {
     "box": int(mujoco.mjtGeom.mjGEOM_BOX),
@@ -39,17 +38,9 @@ _PAD_SIZE = {"box": "0.01 0.01 0.01", "sphere": "0.01", "capsule": "0.01 0.01", 
 
 
 def class_from_name(name: Optional[str]) -> Optional[str]:
-    """Semantic class encoded in a geom name, or None.
-
-    The class is the whole name or its prefix followed by "_" or "/": "bed", "bed_2"
-    and "bed/left" are class bed; "door_frame_1" is class door_frame.
-    """
-    if not name:
-        return None
-    for cls in _CLASSES_BY_LENGTH:
-        if name == cls or name.startswith(cls + "_") or name.startswith(cls + "/"):
-            return cls
-    return None
+    """Semantic class encoded in a geom name, or None (see `spec.class_of_name`)."""
+    cid = class_of_name(name) if name else 0
+    return CLASS_NAMES[cid] if cid else None
 
 
 def _num(x: float) -> str:
