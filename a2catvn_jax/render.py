@@ -54,7 +54,8 @@ class CameraSpec:
       0 disables culling (every ray tests every geom).
     tile_columns: image columns per culling tile (reduced to a divisor of `width`).
     fallback_frames: how many frames of a batch may be re-rendered without culling
-      before the whole batch is (keeps the rare failures of culling cheap).
+      before the whole batch is (keeps the rare failures of culling cheap); 0 means
+      the larger of 8 and an eighth of the batch.
     """
 
     height: int
@@ -62,16 +63,16 @@ class CameraSpec:
     fovy: float = 60.0
     candidates: int = 24
     tile_columns: int = 4
-    fallback_frames: int = 8
+    fallback_frames: int = 0
 
     def __post_init__(self):
         if self.height < 1 or self.width < 1:
             raise ValueError(f"image size must be positive, got {self.height}x{self.width}")
         if not 0.0 < self.fovy < 180.0:
             raise ValueError(f"fovy must be in (0, 180) degrees, got {self.fovy}")
-        if self.candidates < 0 or self.tile_columns < 1 or self.fallback_frames < 1:
+        if self.candidates < 0 or self.tile_columns < 1 or self.fallback_frames < 0:
             raise ValueError(
-                "candidates must be >= 0 and tile_columns, fallback_frames >= 1, got "
+                "candidates and fallback_frames must be >= 0 and tile_columns >= 1, got "
                 f"{self.candidates}, {self.tile_columns}, {self.fallback_frames}"
             )
 
@@ -456,7 +457,7 @@ def render_batch(geometry: Geometry, scene, cam_pos, yaw, tilt, spec: CameraSpec
     frames = jax.vmap(lambda g, p, y, t: _render(g, p, y, t, spec, culled=True))(geo, cam_pos, yaw, tilt)
     bad = frames.fallback
     b = bad.shape[0]
-    m = min(spec.fallback_frames, b)
+    m = min(spec.fallback_frames or max(8, b // 8), b)
 
     def some(frames):
         # Re-render the (at most m) failed frames and scatter them back.

@@ -34,7 +34,7 @@ from a2catvn_jax.scenes import (
 )
 
 H, W, FOVY = 24, 32, 60.0  # non-square: exercises the horizontal field of view
-SPEC = CameraSpec(H, W, FOVY)
+SPEC = CameraSpec(H, W, FOVY, fallback_frames=8)
 CAM_Z = 1.0
 POSES_PER_SCENE = 8
 TOL = 1e-3  # metres
