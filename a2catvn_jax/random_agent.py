@@ -47,7 +47,10 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.config is None:
         args.overrides = [QUICK] + list(args.overrides or [])
-    cfg = config_from_args(args)
+    try:
+        cfg = config_from_args(args)
+    except ValueError as e:
+        parser.error(str(e))
 
     from a2catvn_jax.env import NavEnv  # after argument errors, which need no JAX
 
