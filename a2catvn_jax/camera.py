@@ -12,24 +12,27 @@ import numpy as np
 
 
 def camera_basis(yaw, tilt):
-    """World-frame (right, up, forward) unit vectors, each [..., 3]."""
-    cy, sy = jnp.cos(yaw), jnp.sin(yaw)
-    ct, st = jnp.cos(tilt), jnp.sin(tilt)
-    forward = jnp.stack([cy * ct, sy * ct, st], -1)
-    right = jnp.stack([sy, -cy, jnp.zeros_like(yaw)], -1)
-    up = jnp.stack([-cy * st, -sy * st, ct], -1)
+    """World-frame (right, up, forward) unit vectors, each [..., 3].
+
+    NumPy in (Python or NumPy numbers), NumPy out in float64; otherwise JAX."""
+    xp = np if isinstance(yaw, (int, float, np.number, np.ndarray)) else jnp
+    cy, sy = xp.cos(yaw), xp.sin(yaw)
+    ct, st = xp.cos(tilt), xp.sin(tilt)
+    forward = xp.stack([cy * ct, sy * ct, st], -1)
+    right = xp.stack([sy, -cy, xp.zeros_like(cy)], -1)
+    up = xp.stack([-cy * st, -sy * st, ct], -1)
     return right, up, forward
 
 
 def image_plane(height: int, width: int, fovy_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel-centre coordinates on the plane at unit distance: (x [W], y [H]).
+    """Pixel-centre coordinates on the plane at unit distance: (x [W], y [H]), float64.
 
     x grows to the right, y grows upwards (row 0 is the top row).
     """
     half = np.tan(np.deg2rad(fovy_deg) / 2.0)
     x = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * half * (width / height)
     y = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * half
-    return x.astype(np.float32), y.astype(np.float32)
+    return x, y
 
 
 def ray_directions(yaw, tilt, height: int, width: int, fovy_deg: float):
@@ -39,7 +42,7 @@ def ray_directions(yaw, tilt, height: int, width: int, fovy_deg: float):
 
 def column_ray_directions(yaw, tilt, height: int, width: int, fovy_deg: float):
     """Unit world directions through pixel centres, column-major: [W, H, 3]."""
-    x, y = image_plane(height, width, fovy_deg)
+    x, y = (a.astype(np.float32) for a in image_plane(height, width, fovy_deg))
     right, up, forward = camera_basis(yaw, tilt)
     d = (
         forward[None, None, :]

@@ -65,6 +65,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from a2catvn_jax import camera
+
 __all__ = [
     "APT_HINT",
     "MujocoRenderer",
@@ -238,12 +240,8 @@ def camera_frame(yaw: float, tilt: float) -> np.ndarray:
     forward ``(cos(yaw) cos(tilt), sin(yaw) cos(tilt), sin(tilt))``. The right axis
     stays horizontal (no roll).
     """
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    ct, st = np.cos(tilt), np.sin(tilt)
-    right = np.array([sy, -cy, 0.0])
-    up = np.array([-st * cy, -st * sy, ct])
-    back = -np.array([cy * ct, sy * ct, st])
-    return np.stack([right, up, back], axis=1)
+    right, up, forward = camera.camera_basis(float(yaw), float(tilt))
+    return np.stack([right, up, -forward], axis=1)
 
 
 def camera_ray_directions(height: int, width: int, fovy_deg: float) -> np.ndarray:
@@ -254,9 +252,7 @@ def camera_ray_directions(height: int, width: int, fovy_deg: float) -> np.ndarra
     top of the image, column 0 the left; the vertical field of view is ``fovy_deg``
     and pixels are square (horizontal extent scales with ``width / height``).
     """
-    t = np.tan(np.deg2rad(fovy_deg) / 2.0)
-    v = (1.0 - 2.0 * (np.arange(height) + 0.5) / height) * t
-    u = (2.0 * (np.arange(width) + 0.5) / width - 1.0) * t * (width / height)
+    u, v = camera.image_plane(height, width, fovy_deg)
     uu, vv = np.meshgrid(u, v)  # [H, W]
     return np.stack([uu, vv, -np.ones_like(uu)], axis=-1)
 
