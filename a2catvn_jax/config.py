@@ -51,6 +51,9 @@ __all__ = [
     "SceneConfig",
     "RenderConfig",
     "EnvConfig",
+    "AgentConfig",
+    "LossWeights",
+    "TrainConfig",
     "Config",
     "from_dict",
     "to_dict",
@@ -218,14 +221,105 @@ class EnvConfig:
 
 
 @dataclass(frozen=True)
+class AgentConfig:
+    """The network: conv base (shared observation/target stream), memory, heads."""
+
+    memory: Literal["lstm", "frame_stack"] = "lstm"  # LSTM, or the last `stack` frames and a dense layer
+    stack: int = 4  # frames of the frame-stack variant
+    conv_channels: tuple[int, int, int, int] = (16, 32, 32, 32)  # conv1, conv2 (shared stream), conv3, conv4
+    dense_size: int = 256  # the dense layer after the conv base
+    core_size: int = 256  # LSTM cells (or the frame-stack dense layer)
+    segmentation_loss: Literal["mse_rgb", "cross_entropy"] = "mse_rgb"  # class colours (paper) or class ids
+    space_to_depth: bool = True  # run conv1 (8x8/4) as a 2x2/1 conv on 4x4 pixel blocks (same function, faster)
+
+    def validate(self, path: str = "") -> None:
+        k = functools.partial(_join, path)
+        _check(self.stack >= 2, k("stack"), f"must be >= 2, got {self.stack}")
+        _check(all(c >= 1 for c in self.conv_channels), k("conv_channels"), f"all must be >= 1, got {list(self.conv_channels)}")
+        for name in ("dense_size", "core_size"):
+            v = getattr(self, name)
+            _check(v >= 1, k(name), f"must be >= 1, got {v}")
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weight of each loss term (paper, Table I). A weight of 0 removes the term's computation."""
+
+    actor: float = 1.0
+    critic: float = 0.5
+    entropy: float = 0.001
+    off_policy_critic: float = 1.0
+    pixel_control: float = 0.05
+    reward_prediction: float = 1.0
+    depth: float = 0.1
+    segmentation: float = 0.1  # observation segmentation
+    target_segmentation: float = 0.1
+
+    def validate(self, path: str = "") -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            _check(v >= 0, _join(path, f.name), f"must be >= 0, got {v}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Batched A2C with off-policy critic and auxiliary tasks; optimiser; run bookkeeping."""
+
+    total_frames: int = 40_000_000  # f_max: agent steps over all environments
+    rollout_length: int = 20  # l
+    gamma: float = 0.99
+    learning_rate: float = 7e-4
+    lr_schedule: Literal["linear", "constant"] = "linear"  # linear: lr * (f_max - f) / f_max
+    rmsprop_decay: float = 0.99  # RMSprop alpha
+    rmsprop_eps: float = 1e-5
+    max_grad_norm: float = 0.5
+    replay_size: int = 2000  # replay buffer, steps per environment (whole rollouts are kept)
+    replay_batch: int = 16  # replay sequences per update (off-policy critic, pixel control, reward prediction)
+    pixel_control_gamma: float = 0.9
+    pixel_control_cell: int = 4
+    aux_downsize: int = 4  # depth / segmentation targets are downsized by this factor
+    loss_weights: LossWeights = field(default_factory=LossWeights)
+    log_every: int = 10  # updates between log lines
+    checkpoint_every: int = 500  # updates between checkpoints (and one on exit)
+    keep_checkpoints: int = 3
+
+    def validate(self, path: str = "") -> None:
+        k = functools.partial(_join, path)
+        for name in ("total_frames", "rollout_length", "replay_batch", "pixel_control_cell", "aux_downsize",
+                     "log_every", "checkpoint_every", "keep_checkpoints"):
+            v = getattr(self, name)
+            _check(v >= 1, k(name), f"must be >= 1, got {v}")
+        for name in ("gamma", "pixel_control_gamma", "rmsprop_decay"):
+            v = getattr(self, name)
+            _check(0 <= v <= 1, k(name), f"must be in [0, 1], got {v}")
+        for name in ("learning_rate", "rmsprop_eps", "max_grad_norm"):
+            v = getattr(self, name)
+            _check(v > 0, k(name), f"must be > 0, got {v}")
+        _check(
+            self.replay_size >= self.rollout_length,
+            k("replay_size"),
+            f"must hold at least one rollout ({k('rollout_length')} = {self.rollout_length}), got {self.replay_size}",
+        )
+
+
+@dataclass(frozen=True)
 class Config:
     """Root of the configuration tree."""
 
     seed: int = 0  # master PRNG seed
     env: EnvConfig = field(default_factory=EnvConfig)
+    agent: AgentConfig = field(default_factory=AgentConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
 
     def validate(self, path: str = "") -> None:
         _check(0 <= self.seed < 2**31, _join(path, "seed"), f"must be in [0, 2**31), got {self.seed}")
+        size = self.env.render.image_size
+        for name, factor in (("pixel_control_cell", self.train.pixel_control_cell), ("aux_downsize", self.train.aux_downsize)):
+            _check(
+                size // factor >= 2,
+                _join(path, f"train.{name}"),
+                f"{factor} leaves fewer than 2 cells across a {size}-pixel image (env.render.image_size)",
+            )
 
 
 # ---------------------------------------------------------------- generic machinery

@@ -1,0 +1,105 @@
+"""Loss terms of A2CAT-VN, as pure functions of arrays (time-major: [T, B, ...]).
+
+Returns follow the paper's eq. (1): every step of a rollout is bootstrapped from the
+critic's value at the end of the rollout (a mixture of n-step returns), and the
+bootstrap is cut where an episode ended. Pixel control is Peng's Q(1), i.e. n-step
+Q-learning bootstrapped by max_a Q at the end of the sequence, on pseudo-rewards that
+are the mean absolute change of the grayscale image in each cell; both come from rlax.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import rlax
+
+GRAY = jnp.array([0.299, 0.587, 0.114], jnp.float32)
+
+
+def bootstrapped_returns(rewards, dones, bootstrap, gamma: float):
+    """g_t = r_{t+1} + gamma r_{t+2} + ... + gamma^n 1_c v(s_{t+n}), n = steps to the end.
+
+    rewards, dones [T, B]; bootstrap [B] (value of the state after the last step).
+    The sum and the bootstrap stop at an episode end (done).
+    """
+    discounts = gamma * (1.0 - dones.astype(jnp.float32))
+    values = jnp.broadcast_to(bootstrap, rewards.shape)
+    return jax.vmap(rlax.discounted_returns, in_axes=1, out_axes=1)(rewards, discounts, values)
+
+
+def actor_critic_losses(logits, values, actions, returns):
+    """(actor, critic, negative-entropy) losses, each a mean over [T, B].
+
+    actor: -log pi(a|s) * (g - v) with the advantage held constant; critic:
+    1/2 (g - v)^2; negative entropy: sum_a pi log pi.
+    """
+    log_pi = jax.nn.log_softmax(logits)
+    log_pi_a = jnp.take_along_axis(log_pi, actions[..., None], -1)[..., 0]
+    advantage = jax.lax.stop_gradient(returns - values)
+    actor = -jnp.mean(log_pi_a * advantage)
+    critic = jnp.mean(0.5 * jnp.square(returns - values))
+    neg_entropy = jnp.mean(jnp.sum(jnp.exp(log_pi) * log_pi, -1))
+    return actor, critic, neg_entropy
+
+
+def grayscale(rgb):
+    """uint8 [..., 3] -> float32 [...] in [0, 1]."""
+    return rgb.astype(jnp.float32) @ GRAY / 255.0
+
+
+def pixel_control_rewards(rgb, cell: int):
+    """Pseudo-rewards [T, G, G] of a sequence of T+1 uint8 images [T+1, H, W, 3]:
+    mean absolute change of grayscale intensity per cell x cell block (image cropped to
+    a multiple of `cell`)."""
+    gray = grayscale(rgb)
+    g_h, g_w = gray.shape[1] // cell, gray.shape[2] // cell
+    gray = gray[:, : g_h * cell, : g_w * cell, None]
+    return rlax.pixel_control_rewards(gray, cell)
+
+
+def pixel_control_loss(rgb, actions, dones, q_values, gamma: float, cell: int):
+    """n-step Q-learning loss for pixel control on one sequence, mean over steps and cells.
+
+    rgb [T+1, H, W, 3] uint8; actions, dones [T]; q_values [T+1, G, G, A]. A step that
+    ended an episode has no pseudo-reward (its next frame belongs to a new episode) and
+    no bootstrap beyond it.
+    """
+    T = actions.shape[0]
+    not_done = 1.0 - dones.astype(jnp.float32)
+    rewards = pixel_control_rewards(rgb, cell) * not_done[:, None, None]
+    A = q_values.shape[-1]
+    q_tm1 = q_values[:-1].reshape(T, -1, A)
+    q_t = q_values[1:].reshape(T, -1, A)
+    r_t = rewards.reshape(T, -1)
+    cells = r_t.shape[1]
+    a_tm1 = jnp.broadcast_to(actions[:, None], (T, cells))
+    discount = jnp.broadcast_to((gamma * not_done)[:, None], (T, cells))
+    q_lambda = jax.vmap(lambda q1, a, r, d, q2: rlax.q_lambda(q1, a, r, d, q2, lambda_=1.0), in_axes=1, out_axes=1)
+    td = q_lambda(q_tm1, a_tm1, r_t, discount, q_t)
+    return jnp.mean(0.5 * jnp.square(td))
+
+
+def downsize_mean(x, factor: int):
+    """Average over factor x factor blocks of [N, H, W, ...] (cropped to a multiple of factor)."""
+    n, h, w = x.shape[:3]
+    hh, ww = h // factor, w // factor
+    x = x[:, : hh * factor, : ww * factor].astype(jnp.float32)
+    return x.reshape((n, hh, factor, ww, factor) + x.shape[3:]).mean(axis=(2, 4))
+
+
+def downsize_pick(x, factor: int):
+    """The centre pixel of each factor x factor block of [N, H, W] (class ids)."""
+    n, h, w = x.shape[:3]
+    hh, ww = h // factor, w // factor
+    c = factor // 2
+    return x[:, c : hh * factor : factor, c : ww * factor : factor]
+
+
+def mse(prediction, target):
+    return jnp.mean(jnp.square(prediction - target))
+
+
+def cross_entropy(logits, labels):
+    """Mean softmax cross-entropy of logits [..., C] against integer labels [...]."""
+    log_p = jax.nn.log_softmax(logits)
+    return -jnp.mean(jnp.take_along_axis(log_p, labels[..., None].astype(jnp.int32), -1))

@@ -1,0 +1,224 @@
+"""The A2CAT-VN network (Flax linen).
+
+Conv base: the observation and the target image each pass the same two strided conv
+layers (shared weights: conv1 8x8/4, conv2 4x4/2); the two feature maps are
+concatenated and pass conv3 and conv4 (3x3/1) and one dense layer, ReLU everywhere.
+These features, the one-hot previous action and the previous reward clipped to
+[-1, 1] feed the memory core: an LSTM, or (the frame-stack variant) a dense layer over
+the features of the last `stack` frames. Heads:
+
+- actor (policy logits) and critic (value): affine maps of the core output;
+- pixel control: dense + stride-2 deconvolution from the core output to a
+  (image // cell)^2 grid of Q-values per action, dueling (V + A - mean A);
+- reward prediction: conv4 features of three consecutive frames -> 3 classes
+  (zero, positive, negative reward);
+- depth, observation segmentation, target segmentation: stride-2 deconvolution heads
+  on conv4, at 1/`aux_downsize` of the image resolution.
+
+The network is split into methods so that the learner can run the conv base on a
+whole rollout at once, the core step by step (`lax.scan`), and each head only where
+its loss has a non-zero weight. The target stream (conv1, conv2 of the target image)
+is a method of its own because targets are few: the learner computes it once per
+distinct target image and gathers the result.
+
+conv1 works on uint8 images. With `space_to_depth` it is computed as a 2x2/1 conv on
+4x4 pixel blocks (48 channels) with the same 8x8x3 kernel rearranged: the same
+function, several times faster on CPU. Both paths pad the image by 4 pixels at the
+top/left (and to a multiple of 4 at the bottom/right), so conv1 maps an HxW image to
+ceil(H/4) x ceil(W/4).
+"""
+
+from __future__ import annotations
+
+import math
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from a2catvn_jax.config import AgentConfig
+
+REWARD_CLASSES = 3  # zero, positive, negative
+RP_FRAMES = 3  # frames seen by the reward-prediction head
+_PC_CHANNELS = 32
+
+
+def reward_class(reward):
+    """0 for zero reward, 1 positive, 2 negative."""
+    return jnp.where(reward > 0, 1, jnp.where(reward < 0, 2, 0)).astype(jnp.int32)
+
+
+def conv_grid(image_size: int) -> int:
+    """Side of the conv2..conv4 feature maps for an image side."""
+    return math.ceil(math.ceil(image_size / 4) / 2)
+
+
+def space_to_depth(x, block: int):
+    """[N, H, W, C] -> [N, H/b, W/b, b*b*C], channels ordered (row in block, col in block, C)."""
+    n, h, w, c = x.shape
+    x = x.reshape(n, h // block, block, w // block, block, c)
+    return x.transpose(0, 1, 3, 2, 4, 5).reshape(n, h // block, w // block, block * block * c)
+
+
+class Conv1(nn.Module):
+    """conv1: 8x8 stride 4 on uint8 RGB, padded 4 at the top/left; optional space-to-depth."""
+
+    features: int
+    space_to_depth: bool = True
+
+    @nn.compact
+    def __call__(self, image):
+        n, h, w, c = image.shape
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (8, 8, c, self.features))
+        bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        hp, wp = -(-h // 4) * 4, -(-w // 4) * 4
+        x = image.astype(jnp.float32) * (1.0 / 255.0)
+        x = jnp.pad(x, ((0, 0), (4, hp - h), (4, wp - w), (0, 0)))
+        dims = ("NHWC", "HWIO", "NHWC")
+        if self.space_to_depth:
+            x = space_to_depth(x, 4)
+            k = kernel.reshape(2, 4, 2, 4, c, self.features).transpose(0, 2, 1, 3, 4, 5).reshape(2, 2, 16 * c, self.features)
+            y = jax.lax.conv_general_dilated(x, k, (1, 1), "VALID", dimension_numbers=dims)
+        else:
+            y = jax.lax.conv_general_dilated(x, kernel, (4, 4), "VALID", dimension_numbers=dims)
+        return y + bias
+
+
+class A2CATNet(nn.Module):
+    """The network. Shapes: images [N, H, W, 3] uint8; features [N, dense_size]."""
+
+    cfg: AgentConfig
+    num_actions: int
+    image_size: int
+    pc_cell: int = 4
+    aux_downsize: int = 4
+    num_classes: int = 25
+
+    def setup(self):
+        c1, c2, c3, c4 = self.cfg.conv_channels
+        self.conv1 = Conv1(c1, self.cfg.space_to_depth)
+        self.conv2 = nn.Conv(c2, (4, 4), (2, 2), padding="SAME")
+        self.conv3 = nn.Conv(c3, (3, 3), (1, 1), padding="SAME")
+        self.conv4 = nn.Conv(c4, (3, 3), (1, 1), padding="SAME")
+        self.dense = nn.Dense(self.cfg.dense_size)
+        if self.cfg.memory == "lstm":
+            self.lstm = nn.OptimizedLSTMCell(self.cfg.core_size)
+        else:
+            self.stack_dense = nn.Dense(self.cfg.core_size)
+        self.policy = nn.Dense(self.num_actions, kernel_init=nn.initializers.orthogonal(0.01))
+        self.value = nn.Dense(1)
+        # Pixel control.
+        g = self.pc_grid
+        self.pc_half = -(-g // 2)
+        self.pc_dense = nn.Dense(self.pc_half * self.pc_half * _PC_CHANNELS)
+        self.pc_value = nn.ConvTranspose(1, (4, 4), (2, 2), padding="SAME")
+        self.pc_advantage = nn.ConvTranspose(self.num_actions, (4, 4), (2, 2), padding="SAME")
+        # Reward prediction.
+        self.rp = nn.Dense(REWARD_CLASSES)
+        # Visual-navigation auxiliary heads.
+        seg_out = 3 if self.cfg.segmentation_loss == "mse_rgb" else self.num_classes
+        self.depth_head = _UpHead(32, 1, self.aux_size)
+        self.seg_head = _UpHead(64, seg_out, self.aux_size)
+        self.target_seg_head = _UpHead(64, seg_out, self.aux_size)
+
+    # -- sizes ----------------------------------------------------------------------
+
+    @property
+    def pc_grid(self) -> int:
+        return self.image_size // self.pc_cell
+
+    @property
+    def aux_size(self) -> int:
+        return self.image_size // self.aux_downsize
+
+    # -- conv base --------------------------------------------------------------------
+
+    def target_stream(self, target_rgb):
+        """conv1, conv2 of target images: [N, g, g, c2]."""
+        return self._stream(target_rgb)
+
+    def _stream(self, rgb):
+        return nn.relu(self.conv2(nn.relu(self.conv1(rgb))))
+
+    def encode(self, rgb, target_features):
+        """Observation images and their targets' stream features -> (conv4 maps, dense features)."""
+        x = jnp.concatenate([self._stream(rgb), target_features], axis=-1)
+        conv4 = nn.relu(self.conv4(nn.relu(self.conv3(x))))
+        feats = nn.relu(self.dense(conv4.reshape(conv4.shape[0], -1)))
+        return conv4, feats
+
+    # -- memory core ------------------------------------------------------------------
+
+    def initial_carry(self, batch: int):
+        if self.cfg.memory == "lstm":
+            z = jnp.zeros((batch, self.cfg.core_size), jnp.float32)
+            return (z, z)
+        return jnp.zeros((batch, self.cfg.stack - 1, self.cfg.dense_size), jnp.float32)
+
+    def core(self, carry, features, prev_action, prev_reward):
+        """One step of the memory core: (carry, [N, core_size])."""
+        extra = [jax.nn.one_hot(prev_action, self.num_actions), jnp.clip(prev_reward, -1.0, 1.0)[:, None]]
+        if self.cfg.memory == "lstm":
+            return self.lstm(carry, jnp.concatenate([features] + extra, -1))
+        frames = jnp.concatenate([carry, features[:, None]], axis=1)
+        out = nn.relu(self.stack_dense(jnp.concatenate([frames.reshape(frames.shape[0], -1)] + extra, -1)))
+        return frames[:, 1:], out
+
+    # -- heads ------------------------------------------------------------------------
+
+    def actor_critic(self, core_out):
+        """(policy logits [N, A], value [N])."""
+        return self.policy(core_out), self.value(core_out)[:, 0]
+
+    def pixel_control(self, core_out):
+        """Dueling Q-values [N, G, G, A] on the pixel-control grid."""
+        h = nn.relu(self.pc_dense(core_out)).reshape(-1, self.pc_half, self.pc_half, _PC_CHANNELS)
+        g = self.pc_grid
+        v = self.pc_value(h)[:, :g, :g]
+        a = self.pc_advantage(h)[:, :g, :g]
+        return v + a - a.mean(-1, keepdims=True)
+
+    def reward_prediction(self, conv4_frames):
+        """conv4 maps of RP_FRAMES consecutive frames [N, RP_FRAMES, g, g, c4] -> logits [N, 3]."""
+        return self.rp(conv4_frames.reshape(conv4_frames.shape[0], -1))
+
+    def depth(self, conv4):
+        return self.depth_head(conv4)[..., 0]
+
+    def segmentation(self, conv4):
+        return self.seg_head(conv4)
+
+    def target_segmentation(self, conv4):
+        return self.target_seg_head(conv4)
+
+    def __call__(self, rgb, target_rgb, prev_action, prev_reward):
+        """Every parameter in one pass (used to initialise)."""
+        conv4, feats = self.encode(rgb, self.target_stream(target_rgb))
+        carry, out = self.core(self.initial_carry(rgb.shape[0]), feats, prev_action, prev_reward)
+        logits, value = self.actor_critic(out)
+        stacked = jnp.stack([conv4] * RP_FRAMES, axis=1)
+        return {
+            "logits": logits,
+            "value": value,
+            "pixel_control": self.pixel_control(out),
+            "reward_prediction": self.reward_prediction(stacked),
+            "depth": self.depth(conv4),
+            "segmentation": self.segmentation(conv4),
+            "target_segmentation": self.target_segmentation(conv4),
+        }
+
+
+class _UpHead(nn.Module):
+    """Stride-2 deconvolution, ReLU, 3x3 conv to `out` channels at `size` x `size`."""
+
+    hidden: int
+    out: int
+    size: int
+
+    @nn.compact
+    def __call__(self, x):
+        x = nn.relu(nn.ConvTranspose(self.hidden, (4, 4), (2, 2), padding="SAME")(x))
+        x = nn.Conv(self.out, (3, 3), padding="SAME")(x)
+        if x.shape[1] >= self.size:
+            return x[:, : self.size, : self.size]
+        return jax.image.resize(x, (x.shape[0], self.size, self.size, x.shape[-1]), "bilinear")

@@ -1,0 +1,98 @@
+"""A functional replay buffer of whole rollouts.
+
+The buffer keeps the last `slots` rollouts of all B environments: every field of a
+rollout `[L, B, ...]` is stored at `[slot, L, B, ...]`, with the memory-core state the
+rollout started from (so replayed sequences are unrolled from the state the agent
+really had). Everything is a fixed-shape pytree, so adding and sampling happen inside
+the jitted update.
+
+Sampling:
+- `sample_sequences`: n (rollout, environment) pairs, uniformly among the stored ones;
+  each is a whole rollout sequence of one environment.
+- `sample_reward_windows`: n windows of `frames` consecutive steps inside one episode,
+  half of them (in expectation) ending with a non-zero reward when the buffer holds
+  any, the rest ending with zero reward (reward prediction).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+
+@struct.dataclass
+class Replay:
+    data: dict  # field -> [slots, L, B, ...]
+    carry: object  # core state pytree, leaves [slots, B, ...]
+    count: jnp.ndarray  # rollouts written so far (int32)
+
+    @property
+    def slots(self) -> int:
+        return jax.tree_util.tree_leaves(self.data)[0].shape[0]
+
+
+def init(example: dict, example_carry, slots: int) -> Replay:
+    """An empty buffer for rollouts shaped like `example` (fields [L, B, ...])."""
+    zeros = lambda x: jnp.zeros((slots,) + x.shape, x.dtype)  # noqa: E731
+    return Replay(
+        jax.tree_util.tree_map(zeros, example),
+        jax.tree_util.tree_map(zeros, example_carry),
+        jnp.zeros((), jnp.int32),
+    )
+
+
+def add(replay: Replay, rollout: dict, carry) -> Replay:
+    """The buffer with `rollout` written over the oldest slot."""
+    slot = replay.count % replay.slots
+    put = lambda buf, x: jax.lax.dynamic_update_index_in_dim(buf, x.astype(buf.dtype), slot, 0)  # noqa: E731
+    return Replay(
+        jax.tree_util.tree_map(put, replay.data, rollout),
+        jax.tree_util.tree_map(put, replay.carry, carry),
+        replay.count + 1,
+    )
+
+
+def filled(replay: Replay):
+    """[slots] bool: slots holding a rollout."""
+    return jnp.arange(replay.slots) < replay.count
+
+
+def sample_sequences(replay: Replay, key, n: int, fields):
+    """n whole sequences: (fields -> [L, n, ...], core state leaves [n, ...])."""
+    B = jax.tree_util.tree_leaves(replay.carry)[0].shape[1]
+    ks, kb = jax.random.split(key)
+    logits = jnp.where(filled(replay), 0.0, -jnp.inf)
+    slot = jax.random.categorical(ks, logits, shape=(n,))
+    env = jax.random.randint(kb, (n,), 0, B)
+    seqs = {f: jnp.moveaxis(replay.data[f][slot, :, env], 0, 1) for f in fields}
+    carry = jax.tree_util.tree_map(lambda c: c[slot, env], replay.carry)
+    return seqs, carry
+
+
+def sample_reward_windows(replay: Replay, key, n: int, frames: int, fields):
+    """n windows of `frames` consecutive steps of one environment inside one episode.
+
+    Returns (fields -> [n, frames, ...], reward [n] of the last step). The windows come
+    from the first L-1 steps of stored rollouts (those with a recorded reward); a window
+    may not cross an episode start (a `reset` after its first frame).
+    """
+    reward = replay.data["reward"]  # [slots, L-1, B]
+    reset = replay.data["reset"]  # [slots, L, B]
+    S, T, B = reward.shape
+    t = jnp.arange(T)
+    # Window ending at step t: frames t-frames+1 .. t; none of frames after the first may start an episode.
+    starts = jnp.zeros((S, T, B), bool)
+    for k in range(frames - 1):
+        starts = starts | jnp.roll(reset[:, :T], k, axis=1)
+    ok = (t[None, :, None] >= frames - 1) & ~starts & filled(replay)[:, None, None]
+    nonzero = ok & (reward != 0)
+    zero = ok & (reward == 0)
+    k_kind, k_nz, k_z = jax.random.split(key, 3)
+    want_nonzero = jax.random.bernoulli(k_kind, 0.5, (n,)) & jnp.any(nonzero)
+    pick = lambda k, m: jax.random.categorical(k, jnp.where(m.reshape(-1), 0.0, -jnp.inf), shape=(n,))  # noqa: E731
+    idx = jnp.where(want_nonzero, pick(k_nz, nonzero), pick(k_z, jnp.where(jnp.any(zero), zero, ok)))
+    slot, step, env = idx // (T * B), (idx // B) % T, idx % B
+    window = step[:, None] + jnp.arange(1 - frames, 1)[None, :]  # [n, frames]
+    out = {f: replay.data[f][slot[:, None], window, env[:, None]] for f in fields}
+    return out, reward[slot, step, env]
