@@ -1,0 +1,140 @@
+"""Orbax checkpoints of a training run.
+
+A work directory holds `config.yaml` (the run's full configuration) and
+`checkpoints/<update>/` written by an orbax `CheckpointManager`: the whole
+`TrainState` (parameters, optimiser state, environment and agent state, replay
+buffer, PRNG key, update count) and a small JSON record (update, frames, config).
+Restoring it and calling `update` continues the run exactly where it stopped.
+
+Every problem is a `CheckpointError` that says what is wrong: no checkpoint in the
+directory, a step that does not exist, a checkpoint that cannot be read, or one
+written under a different configuration (the differing keys are listed).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Optional
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+from a2catvn_jax.config import Config, ConfigError, from_dict, load_config, save_config, to_dict
+
+CONFIG_FILE = "config.yaml"
+CHECKPOINT_DIR = "checkpoints"
+# Keys that may differ between the run that wrote a checkpoint and the one resuming it.
+BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_checkpoints")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that is missing, unreadable or written under another configuration."""
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}.{k}" if prefix else k
+        out.update(_flat(v, key) if isinstance(v, dict) else {key: v})
+    return out
+
+
+def config_differences(a: Config, b: Config, ignore=BOOKKEEPING_KEYS) -> list[str]:
+    """'key: a_value != b_value' for every key where the two configurations differ."""
+    fa, fb = _flat(to_dict(a)), _flat(to_dict(b))
+    return [f"{k}: {fa[k]!r} != {fb[k]!r}" for k in fa if k not in ignore and fa[k] != fb[k]]
+
+
+def read_run_config(workdir: str | os.PathLike) -> Config:
+    """The configuration saved in a work directory."""
+    path = Path(workdir) / CONFIG_FILE
+    if not path.exists():
+        raise CheckpointError(f"{workdir}: no {CONFIG_FILE}; is this a training work directory?")
+    try:
+        return load_config(path)
+    except ConfigError as e:
+        raise CheckpointError(f"{path}: cannot be read as a configuration: {e}") from None
+
+
+class Checkpointer:
+    """Saves and restores the `TrainState` of a run in `workdir/checkpoints`."""
+
+    def __init__(self, workdir: str | os.PathLike, keep: int = 3, create: bool = True):
+        self.workdir = Path(workdir).absolute()
+        self.directory = self.workdir / CHECKPOINT_DIR
+        if not create and not self.directory.is_dir():
+            raise CheckpointError(f"{self.workdir}: no checkpoints (missing {CHECKPOINT_DIR}/)")
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create, enable_async_checkpointing=False)
+        self.manager = ocp.CheckpointManager(self.directory, options=options)
+
+    def steps(self) -> list[int]:
+        return list(self.manager.all_steps())
+
+    def latest(self) -> Optional[int]:
+        return self.manager.latest_step()
+
+    def save(self, state, cfg: Config, frames: int) -> int:
+        """Write `state` under its update count; returns that count."""
+        step = int(jax.device_get(state.update))
+        if step in self.steps():
+            return step
+        save_config(cfg, self.workdir / CONFIG_FILE)
+        meta = {"update": step, "frames": int(frames), "config": to_dict(cfg)}
+        self.manager.save(
+            step,
+            args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
+            force=True,
+        )
+        self.manager.wait_until_finished()
+        return step
+
+    def restore(self, template, cfg: Optional[Config] = None, step: Optional[int] = None):
+        """(state, meta) of checkpoint `step` (default: the latest), shaped like `template`.
+
+        `template` is a `TrainState` (or its `jax.eval_shape`) of the configuration the
+        run uses now; with `cfg` given, a checkpoint written under a different
+        configuration is refused.
+        """
+        steps = self.steps()
+        if not steps:
+            raise CheckpointError(f"{self.workdir}: no checkpoint found in {self.directory}")
+        if step is None:
+            step = max(steps)
+        elif step not in steps:
+            raise CheckpointError(f"{self.workdir}: no checkpoint at update {step}; available: {sorted(steps)}")
+        path = self.directory / str(step)
+        try:
+            meta = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
+        except Exception as e:  # noqa: BLE001 - orbax raises many kinds
+            raise CheckpointError(f"{path}: cannot read the checkpoint record ({type(e).__name__}: {e})") from None
+        if cfg is not None:
+            try:
+                saved = from_dict(Config, meta["config"])
+            except (ConfigError, KeyError, TypeError) as e:
+                raise CheckpointError(f"{path}: its configuration is invalid: {e}") from None
+            diff = config_differences(saved, cfg)
+            if diff:
+                raise CheckpointError(
+                    f"{path} was written with a different configuration:\n  " + "\n  ".join(diff)
+                    + "\nResume with the run's own configuration (omit --config/--set) or start a new work directory."
+                )
+        abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
+        try:
+            restored = self.manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))
+        except Exception as e:  # noqa: BLE001
+            raise CheckpointError(
+                f"{path}: the checkpoint is corrupt or does not match this configuration "
+                f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+            ) from None
+        state = restored["state"]
+        paths = jax.tree_util.tree_flatten_with_path(abstract)[0]
+        leaves = jax.tree_util.tree_leaves(state)
+        bad = [jax.tree_util.keystr(p) for (p, want), got in zip(paths, leaves) if np.shape(got) != want.shape]
+        if bad:
+            raise CheckpointError(f"{path}: array shapes do not match this configuration at {', '.join(bad[:5])}")
+        return state, meta
+
+    def close(self):
+        self.manager.close()
