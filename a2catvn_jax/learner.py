@@ -320,7 +320,7 @@ class Learner:
         metrics = {f"loss/{k}": v for k, v in terms.items()}
         metrics.update({
             "loss/total": total,
-            "grad_norm": optax.global_norm(grads),
+            "grad_norm": optax.tree.norm(grads),
             "learning_rate": self.schedule(ts.update),
             **stats,
         })

@@ -1,0 +1,133 @@
+"""The train command: logs, checkpoints, exact resume, and its errors.
+
+Runs use a tiny configuration (16x16 images, 4 environments, 4-step rollouts). The
+reference run of 6 updates is trained once per module; everything else resumes,
+interrupts or corrupts copies of such runs.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from a2catvn_jax.checkpoint import Checkpointer, CheckpointError
+from a2catvn_jax.config import load_config
+from a2catvn_jax.logger import read_jsonl
+from a2catvn_jax.train import TrainingError, main, train
+
+TINY = [
+    "env.num_envs=4",
+    "env.render.image_size=16",
+    "env.render.culling=false",
+    "env.scene.kind=room",
+    "env.scene.num_scenes=1",
+    "env.goals_per_scene=2",
+    "env.max_episode_steps=10",
+    "train.rollout_length=4",
+    "train.replay_size=8",
+    "train.replay_batch=2",
+    "agent.conv_channels=[4,8,8,8]",
+    "agent.dense_size=16",
+    "agent.core_size=16",
+    "train.log_every=1",
+    "train.checkpoint_every=2",
+]
+N = 3
+
+
+def _cfg(*extra):
+    return load_config(None, TINY + list(extra))
+
+
+def _leaves(state):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(jax.device_get(state))]
+
+
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+    """2N updates in one go."""
+    workdir = tmp_path_factory.mktemp("straight")
+    _, state, _ = train(_cfg(), workdir, max_updates=2 * N, progress=False, log=lambda *_: None)
+    return workdir, _leaves(state)
+
+
+def test_resume_is_exact(tmp_path, straight):
+    _, reference = straight
+    train(_cfg(), tmp_path, max_updates=N, progress=False, log=lambda *_: None)
+    _, state, _ = train(_cfg(), tmp_path, resume=True, max_updates=N, progress=False, log=lambda *_: None)
+    resumed = _leaves(state)
+    assert len(resumed) == len(reference)
+    for a, b in zip(resumed, reference):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_logs_and_checkpoints(straight):
+    workdir, _ = straight
+    rows = read_jsonl(workdir / "metrics.jsonl")
+    assert [r["update"] for r in rows] == list(range(1, 2 * N + 1))
+    assert rows[-1]["frames"] == 2 * N * 4 * 4
+    for key in ("loss/total", "loss/actor", "loss/pixel_control", "loss/depth", "success_rate", "fps", "learning_rate"):
+        assert key in rows[0]
+    assert rows[1]["learning_rate"] < rows[0]["learning_rate"]  # linear decay
+    csv_lines = (workdir / "metrics.csv").read_text().splitlines()
+    assert len(csv_lines) == 2 * N + 1 and csv_lines[0].startswith("update,frames,fps")
+    assert list((workdir / "tb").iterdir()), "no TensorBoard events"
+    assert sorted(Checkpointer(workdir, create=False).steps())[-1] == 2 * N
+    assert load_config(workdir / "config.yaml") == _cfg()
+
+
+def test_fresh_run_refuses_existing_checkpoints(straight):
+    workdir, _ = straight
+    with pytest.raises(CheckpointError, match="--resume"):
+        train(_cfg(), workdir, max_updates=1, progress=False)
+
+
+def test_resume_with_other_config_is_an_error(tmp_path, straight, capsys):
+    workdir, _ = straight
+    run = tmp_path / "run"
+    shutil.copytree(workdir, run)
+    with pytest.raises(SystemExit) as e:
+        main(["--workdir", str(run), "--resume", "--set", "train.gamma=0.9"])
+    assert e.value.code == 2
+    assert "train.gamma: 0.99 != 0.9" in capsys.readouterr().err
+    with pytest.raises(CheckpointError, match="different configuration"):
+        Checkpointer(run, create=False).restore(None, _cfg("train.gamma=0.9"))
+
+
+def test_missing_and_corrupt_checkpoints(tmp_path, straight, capsys):
+    workdir, _ = straight
+    with pytest.raises(SystemExit) as e:
+        main(["--workdir", str(tmp_path / "nothing"), "--resume"])
+    assert e.value.code == 2 and "holds no checkpoints" in capsys.readouterr().err
+    run = tmp_path / "run"
+    shutil.copytree(workdir, run)
+    ckpt = Checkpointer(run, create=False)
+    with pytest.raises(CheckpointError, match="no checkpoint at update 99"):
+        ckpt.restore(None, step=99)
+    latest = run / "checkpoints" / str(ckpt.latest()) / "state"
+    for f in latest.rglob("*"):
+        if f.is_file() and f.stat().st_size > 0 and "metadata" not in f.name:
+            f.write_bytes(b"\0" * 7)
+    with pytest.raises(SystemExit) as e:
+        main(["--workdir", str(run), "--resume", "--updates", "1", "--no-progress"])
+    assert e.value.code == 1
+    assert "corrupt" in capsys.readouterr().err
+
+
+def test_nonfinite_loss_stops_and_keeps_last_checkpoint(tmp_path):
+    cfg = _cfg("train.learning_rate=1e38", "train.lr_schedule=constant")
+    with pytest.raises(TrainingError, match="non-finite"):
+        train(cfg, tmp_path, max_updates=20, progress=False, log=lambda *_: None)
+    ckpt = Checkpointer(tmp_path, create=False)
+    from a2catvn_jax.learner import Learner
+
+    state, meta = ckpt.restore(jax.eval_shape(Learner(cfg).init, jax.random.PRNGKey(0)), cfg)
+    assert all(np.all(np.isfinite(x)) for x in _leaves(state.params))
+    rows = read_jsonl(tmp_path / "metrics.jsonl")
+    assert all(np.isfinite(r["loss/total"]) for r in rows)
+    assert json.dumps(meta)  # the record is plain JSON
