@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Optional
 
-
+import numpy as np
 
 from .mjcf import geom_aabb
 from .spec import CLASS_ID, Scene, class_colors
@@ -94,6 +94,55 @@ def save_topdown(scene: Scene, path: str, *, color_by: str = "rgba", dpi: int = 
     return path
 
 
-__all__ = ["plot_topdown", "save_topdown"]
+class TopdownMap:
+    """A scene's top-down map as square RGB images with a path, an agent pose and a target pose.
+
+    The scene is drawn once; `render` only moves the path and the pose markers. Poses
+    are (x, y, yaw, ...) with yaw in radians from the x axis.
+    """
+
+    def __init__(self, scene: Scene, size: int = 128, *, color_by: str = "rgba"):
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        self.size = size
+        self.fig = Figure(figsize=(1.0, 1.0), dpi=size)
+        self.canvas = FigureCanvasAgg(self.fig)
+        ax = self.fig.add_axes((0.0, 0.0, 1.0, 1.0))
+        plot_topdown(scene, ax, color_by=color_by, room_labels=False)
+        ax.set_title("")
+        ax.set_axis_off()
+        x0, y0, x1, y1 = scene.bounds
+        self._arrow = 0.08 * max(x1 - x0, y1 - y0)
+        (self._path,) = ax.plot([], [], "-", color="tab:blue", lw=1.0)
+        (self._target,) = ax.plot([], [], "*", color="tab:red", ms=7, mec="black", mew=0.3)
+        (self._target_dir,) = ax.plot([], [], "-", color="tab:red", lw=1.2)
+        (self._agent,) = ax.plot([], [], "o", color="tab:blue", ms=4, mec="black", mew=0.3)
+        (self._agent_dir,) = ax.plot([], [], "-", color="tab:blue", lw=1.2)
+        self._text = ax.text(0.03, 0.97, "", transform=ax.transAxes, fontsize=5, ha="left", va="top",
+                             bbox=dict(facecolor="white", alpha=0.8, lw=0, pad=1))
+
+    def _pose(self, marker, direction, pose):
+        if pose is None:
+            marker.set_data([], [])
+            direction.set_data([], [])
+            return
+        x, y, yaw = (float(v) for v in pose[:3])
+        marker.set_data([x], [y])
+        direction.set_data([x, x + self._arrow * np.cos(yaw)], [y, y + self._arrow * np.sin(yaw)])
+
+    def render(self, path=None, pose=None, target_pose=None, text: str = "") -> np.ndarray:
+        """[size, size, 3] uint8: the map with `path` [N, >=2] (xy), `pose` and `target_pose`."""
+        path = np.zeros((0, 2)) if path is None or len(path) == 0 else np.asarray(path, float)
+        self._path.set_data(path[:, 0], path[:, 1])
+        self._pose(self._agent, self._agent_dir, pose)
+        self._pose(self._target, self._target_dir, target_pose)
+        self._text.set_text(text)
+        self._text.set_visible(bool(text))
+        self.canvas.draw()
+        return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
+
+
+__all__ = ["TopdownMap", "plot_topdown", "save_topdown"]
 
 

@@ -1,0 +1,140 @@
+"""The evaluate command: result fields and their consistency, determinism, the video,
+held-out houses, evaluation-only overrides, and clean errors.
+
+One tiny run (16x16 images, 4 environments, 2 updates) is trained per module; every
+test evaluates or damages (a copy of) it.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from a2catvn_jax.config import ConfigError, load_config
+from a2catvn_jax.evaluate import HELD_OUT_OFFSET, default_output, evaluate, main
+from a2catvn_jax.scenes import mjcf
+from a2catvn_jax.train import train
+from a2catvn_jax.world import make_scenes
+
+TINY = ["env.num_envs=4", "env.render.image_size=16", "env.render.culling=false", "env.scene.num_scenes=1",
+        "env.scene.kind=room", "env.goals_per_scene=2", "env.max_episode_steps=20", "train.rollout_length=4",
+        "train.replay_size=8", "train.replay_batch=2", "agent.conv_channels=[4,8,8,8]", "agent.dense_size=16",
+        "agent.core_size=16", "train.log_every=1"]
+EPISODES = 6
+FIELDS = ("step", "frames", "episodes", "success_rate", "spl", "episode_length", "episode_return", "houses", "greedy",
+          "per_episode")
+PER_EPISODE = ("success", "length", "spl", "return", "start_distance")
+
+
+def quiet(*_):
+    pass
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("run")
+    train(load_config(None, TINY), workdir, max_updates=2, progress=False, log=quiet)
+    return workdir
+
+
+@pytest.fixture(scope="module")
+def cli_result(run, tmp_path_factory):
+    """The CLI's JSON and GIF for EPISODES episodes of seed 3."""
+    video = tmp_path_factory.mktemp("video") / "agent.gif"
+    main(["--workdir", str(run), "--episodes", str(EPISODES), "--seed", "3", "--video", str(video),
+          "--video-episodes", "1"])
+    return json.loads(default_output(run, {"step": 2, "houses": "train"}).read_text()), video
+
+
+def test_result_fields_are_consistent(cli_result):
+    result, _ = cli_result
+    for key in FIELDS:
+        assert key in result
+    assert result["step"] == 2 and result["frames"] == 2 * 4 * 4
+    assert result["houses"] == "train" and result["greedy"] is False
+    assert result["episodes"] == EPISODES
+    per = result["per_episode"]
+    assert all(len(per[k]) == EPISODES for k in PER_EPISODE)
+    assert 0.0 <= result["spl"] <= result["success_rate"] <= 1.0
+    assert result["success_rate"] == pytest.approx(np.mean(per["success"]))
+    assert result["episode_length"] == pytest.approx(np.mean(per["length"]))
+    assert result["episode_return"] == pytest.approx(np.mean(per["return"]))
+    assert all(1 <= n <= 20 for n in per["length"])
+    assert all(0.0 <= spl <= s for spl, s in zip(per["spl"], per["success"]))
+    assert per["return"] == [float(s) for s in per["success"]]  # reward 1 on success only
+    assert all(d > 0 for d in per["start_distance"])
+    assert result["eval_frames"] % 4 == 0 and result["eval_frames"] >= sum(per["length"])
+
+
+def test_same_seed_same_result(run, cli_result):
+    expected, _ = cli_result
+    again = evaluate(run, EPISODES, seed=3, log=quiet)
+    assert again == {k: v for k, v in expected.items() if k != "video"}
+
+
+def test_video_has_three_panels(cli_result):
+    _, video = cli_result
+    frames = iio.imread(video, index=None)
+    assert frames.ndim == 4 and len(frames) >= 2
+    assert frames.shape[1:3] == (128, 3 * 128)  # 16 px images upscaled 8x: observation | target | map
+
+
+def test_held_out_houses(run, cli_result):
+    cfg = load_config(None, TINY)
+    train_scene, held_scene = make_scenes(cfg.env)[0], make_scenes(cfg.env, HELD_OUT_OFFSET)[0]
+    layout = mjcf.layout_of([train_scene, held_scene])
+    assert mjcf.scene_to_mjcf(train_scene, layout) != mjcf.scene_to_mjcf(held_scene, layout)
+
+    result = evaluate(run, 3, houses="held-out", greedy=True, overrides=["env.num_envs=2", "env.max_episode_steps=8"],
+                      log=quiet)
+    assert result["houses"] == "held-out" and result["greedy"] is True and result["num_envs"] == 2
+    assert result["scenes"] == [held_scene.name] and result["scenes"] != cli_result[0]["scenes"]
+    assert result["episodes"] == 3 and all(n <= 8 for n in result["per_episode"]["length"])
+
+
+def test_network_changes_are_refused(run, capsys):
+    with pytest.raises(ConfigError, match="agent.core_size"):
+        evaluate(run, 1, overrides=["agent.core_size=32"], log=quiet)
+    with pytest.raises(SystemExit) as exc:
+        main(["--workdir", str(run), "--set", "env.render.image_size=32"])
+    assert exc.value.code == 2 and "env.render.image_size" in capsys.readouterr().err
+
+
+def _error(argv, capsys) -> str:
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2, err
+    assert "Traceback" not in err
+    return err.splitlines()[-1]
+
+
+def test_clean_errors(run, tmp_path, capsys):
+    assert _error(["--workdir", str(run), "--episodes", "0"], capsys).endswith("--episodes must be >= 1, got 0")
+    assert _error(["--workdir", str(run), "--step", "7"], capsys) == (
+        f"error: {run.absolute()}: no checkpoint at update 7; available: [0, 2]"
+    )
+    assert _error(["--workdir", str(tmp_path / "missing")], capsys).startswith("error: ")
+
+    corrupt = tmp_path / "corrupt"
+    shutil.copytree(run, corrupt)
+    arrays = [p for p in (corrupt / "checkpoints" / "2" / "state").rglob("d/*") if p.is_file()]
+    assert arrays
+    for path in arrays:
+        path.write_bytes(b"not an array")
+    line = _error(["--workdir", str(corrupt)], capsys)
+    assert line.startswith("error: ") and "corrupt" in line
+
+
+def test_cli_without_checkpoints(run, tmp_path):
+    shutil.copy(run / "config.yaml", tmp_path / "config.yaml")
+    proc = subprocess.run([sys.executable, "-m", "a2catvn_jax.evaluate", "--workdir", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [f"error: {tmp_path}: no checkpoints (missing checkpoints/)"]

@@ -1,0 +1,355 @@
+"""The learning maths of A2CAT-VN against independent computations.
+
+- `losses`: bootstrapped returns, actor/critic/entropy losses (and which gradients
+  they carry), pixel-control loss and the downsizing helpers against numpy loops
+  written from their equations; the pixel-control loss also against
+  `rlax.pixel_control_loss` on sequences without episode ends.
+- `replay`: ring-buffer writes, sampling of whole sequences only from filled slots, and
+  reward-prediction windows (inside one episode, balanced between zero and non-zero
+  final reward, exactly the valid windows) against a numpy enumeration, with markers
+  in the stored frames identifying every sampled position.
+- `networks.Conv1`: the space-to-depth and plain paths against each other and against a
+  numpy convolution.
+- `Learner`: the memory core is cleared exactly at episode starts (LSTM and frame
+  stack), one update has finite metrics and gradients, and zero-weight replay losses
+  remove the replay buffer and their terms.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import rlax
+
+from a2catvn_jax import losses, networks
+from a2catvn_jax import replay as replay_lib
+from a2catvn_jax.config import load_config
+from a2catvn_jax.learner import REPLAY_FIELDS, Learner
+
+TINY = [
+    "env.num_envs=4",
+    "env.render.image_size=16",
+    "env.render.culling=false",
+    "env.scene.num_scenes=1",
+    "env.scene.grid=[1,1]",
+    "env.goals_per_scene=2",
+    "train.rollout_length=4",
+    "train.replay_size=8",
+    "train.replay_batch=2",
+    "agent.conv_channels=[4,8,8,8]",
+    "agent.dense_size=16",
+    "agent.core_size=16",
+]
+NO_REPLAY = ["train.loss_weights.pixel_control=0", "train.loss_weights.reward_prediction=0",
+             "train.loss_weights.off_policy_critic=0"]
+
+
+def _gray(rgb):
+    return rgb.astype(np.float64) @ np.array([0.299, 0.587, 0.114]) / 255.0
+
+
+def _finite(tree):
+    return all(bool(np.all(np.isfinite(np.asarray(x)))) for x in jax.tree_util.tree_leaves(tree))
+
+
+# -- losses ---------------------------------------------------------------------------------
+
+
+def test_bootstrapped_returns():
+    rng = np.random.default_rng(0)
+    T, B, gamma = 7, 5, 0.95
+    rewards = rng.normal(size=(T, B)).astype(np.float32)
+    dones = rng.random((T, B)) < 0.3
+    dones[2, 0] = dones[T - 1, 1] = True
+    bootstrap = rng.normal(size=B).astype(np.float32)
+    expected = np.zeros((T, B))
+    for b in range(B):
+        g = float(bootstrap[b])
+        for t in reversed(range(T)):
+            g = rewards[t, b] + gamma * (1.0 - dones[t, b]) * g
+            expected[t, b] = g
+    got = losses.bootstrapped_returns(jnp.asarray(rewards), jnp.asarray(dones), jnp.asarray(bootstrap), gamma)
+    np.testing.assert_allclose(np.asarray(got), expected, atol=1e-5, rtol=1e-5)
+
+
+def test_actor_critic_losses_and_gradients():
+    rng = np.random.default_rng(1)
+    T, B, A = 5, 3, 6
+    logits = rng.normal(size=(T, B, A)).astype(np.float32)
+    values = rng.normal(size=(T, B)).astype(np.float32)
+    returns = rng.normal(size=(T, B)).astype(np.float32)
+    actions = rng.integers(0, A, size=(T, B)).astype(np.int32)
+
+    lg = logits.astype(np.float64)
+    log_p = lg - lg.max(-1, keepdims=True)
+    log_p -= np.log(np.exp(log_p).sum(-1, keepdims=True))
+    p = np.exp(log_p)
+    adv = returns.astype(np.float64) - values
+    log_p_a = np.take_along_axis(log_p, actions[..., None], -1)[..., 0]
+    expected = (np.mean(-log_p_a * adv), np.mean(0.5 * adv**2), np.mean((p * log_p).sum(-1)))
+
+    args = tuple(map(jnp.asarray, (logits, values, actions, returns)))
+    got = losses.actor_critic_losses(*args)
+    np.testing.assert_allclose(np.array(got, np.float64), expected, atol=1e-5, rtol=1e-5)
+
+    term = lambda i, argnum: jax.grad(lambda *a: losses.actor_critic_losses(*a)[i], argnum)(*args)  # noqa: E731
+    assert np.all(np.asarray(term(0, 1)) == 0.0)
+    n = T * B
+    np.testing.assert_allclose(np.asarray(term(1, 1)), -adv / n, atol=1e-6)
+    onehot = np.eye(A)[actions]
+    np.testing.assert_allclose(np.asarray(term(0, 0)), -(onehot - p) * adv[..., None] / n, atol=1e-6)
+
+
+def _pc_inputs(seed, T, size, G, A):
+    rng = np.random.default_rng(seed)
+    rgb = rng.integers(0, 256, size=(T + 1, size, size, 3), dtype=np.uint8)
+    actions = rng.integers(0, A, size=T).astype(np.int32)
+    q = rng.normal(size=(T + 1, G, G, A)).astype(np.float32)
+    return rgb, actions, q
+
+
+def test_pixel_control_loss_matches_rlax_without_dones():
+    T, A, gamma, cell = 6, 5, 0.9, 4
+    rgb, actions, q = _pc_inputs(2, T, 16, 4, A)
+    gray = losses.grayscale(jnp.asarray(rgb))[..., None]
+    reference = rlax.pixel_control_loss(gray, jnp.asarray(actions), jnp.asarray(q), gamma, cell)
+    assert reference.shape == (T, 4, 4)
+    got = losses.pixel_control_loss(jnp.asarray(rgb), jnp.asarray(actions), jnp.zeros(T, bool), jnp.asarray(q), gamma, cell)
+    np.testing.assert_allclose(float(got), float(jnp.mean(reference)), rtol=1e-5)
+
+
+def test_pixel_control_loss_with_dones_matches_numpy_q_lambda():
+    T, A, gamma, cell, size = 7, 4, 0.9, 4, 18  # 18x18 is cropped to 16x16: a 4x4 grid
+    G = size // cell
+    rgb, actions, q = _pc_inputs(3, T, size, G, A)
+    dones = np.zeros(T, bool)
+    dones[[2, 5]] = True
+
+    gray = _gray(rgb)[:, : G * cell, : G * cell]
+    diff = np.abs(gray[1:] - gray[:-1])
+    r = np.zeros((T, G, G))
+    for t in range(T):
+        for i in range(G):
+            for j in range(G):
+                r[t, i, j] = diff[t, i * cell : (i + 1) * cell, j * cell : (j + 1) * cell].mean() * (1 - dones[t])
+    sq = []
+    for i in range(G):
+        for j in range(G):
+            g = q[T, i, j].astype(np.float64).max()
+            for t in reversed(range(T)):
+                g = r[t, i, j] + gamma * (1 - dones[t]) * g
+                sq.append(0.5 * (g - q[t, i, j, actions[t]]) ** 2)
+    expected = np.mean(sq)
+
+    got = losses.pixel_control_loss(jnp.asarray(rgb), jnp.asarray(actions), jnp.asarray(dones), jnp.asarray(q), gamma, cell)
+    np.testing.assert_allclose(float(got), expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("shape,factor", [((2, 18, 18, 3), 4), ((2, 19, 17), 4), ((1, 17, 17, 2), 3)])
+def test_downsize_mean_and_pick(shape, factor):
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=shape).astype(np.float32)
+    ids = rng.integers(0, 25, size=shape[:3]).astype(np.int32)
+    hh, ww = shape[1] // factor, shape[2] // factor
+    mean = np.zeros((shape[0], hh, ww) + shape[3:])
+    pick = np.zeros((shape[0], hh, ww), np.int32)
+    c = factor // 2
+    for i in range(hh):
+        for j in range(ww):
+            mean[:, i, j] = x[:, i * factor : (i + 1) * factor, j * factor : (j + 1) * factor].mean(axis=(1, 2))
+            pick[:, i, j] = ids[:, i * factor + c, j * factor + c]
+    np.testing.assert_allclose(np.asarray(losses.downsize_mean(jnp.asarray(x), factor)), mean, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(losses.downsize_pick(jnp.asarray(ids), factor)), pick)
+
+
+# -- replay ---------------------------------------------------------------------------------
+
+
+def test_replay_add_wraps_around():
+    L, B, slots = 3, 2, 3
+    buf = replay_lib.init({"x": jnp.zeros((L, B), jnp.float32)}, jnp.zeros((B, 2)), slots)
+    for k in range(slots + 1):
+        if k == 2:
+            np.testing.assert_array_equal(np.asarray(replay_lib.filled(buf)), [True, True, False])
+        buf = replay_lib.add(buf, {"x": jnp.full((L, B), k + 1.0)}, jnp.full((B, 2), k + 1.0))
+    assert int(buf.count) == slots + 1
+    np.testing.assert_array_equal(np.asarray(buf.data["x"])[:, 0, 0], [4, 2, 3])
+    np.testing.assert_array_equal(np.asarray(buf.carry)[:, 0, 0], [4, 2, 3])
+    assert np.all(np.asarray(replay_lib.filled(buf)))
+
+
+def test_sample_sequences_only_from_filled_slots():
+    L, B, slots, n = 4, 3, 5, 500
+    buf = replay_lib.init({"x": jnp.zeros((L, B), jnp.int32)}, jnp.zeros((B, 2), jnp.int32), slots)
+    for k in range(2):
+        value = 10 * (k + 1) + jnp.arange(B, dtype=jnp.int32)
+        buf = replay_lib.add(buf, {"x": jnp.broadcast_to(value, (L, B))}, jnp.broadcast_to(value[:, None], (B, 2)))
+    seqs, carry = replay_lib.sample_sequences(buf, jax.random.PRNGKey(0), n, ("x",))
+    x, carry = np.asarray(seqs["x"]), np.asarray(carry)
+    assert x.shape == (L, n) and carry.shape == (n, 2)
+    assert np.all(x == x[:1])
+    assert np.all(carry == x[0][:, None])
+    assert set(x[0].tolist()) == {10, 11, 12, 20, 21, 22}
+
+
+def _window_buffer(rewards_nonzero: bool, seed: int = 5):
+    """4 slots, 3 filled; markers encode (rollout, step, env) in `target` and `rgb`."""
+    L, B, slots, filled = 9, 3, 4, 3
+    rng = np.random.default_rng(seed)
+    example = {
+        "rgb": jnp.zeros((L, B, 2, 2, 3), jnp.uint8),
+        "target": jnp.zeros((L, B), jnp.int32),
+        "reset": jnp.zeros((L, B), bool),
+        "reward": jnp.zeros((L - 1, B), jnp.float32),
+    }
+    buf = replay_lib.init(example, jnp.zeros((B, 1)), slots)
+    stored = []
+    ll, bb = np.meshgrid(np.arange(L), np.arange(B), indexing="ij")
+    for k in range(filled):
+        reset = rng.random((L, B)) < 0.25
+        reward = np.where(rng.random((L - 1, B)) < 0.15, rng.choice([-1.0, 0.5, 1.0], (L - 1, B)), 0.0)
+        if not rewards_nonzero:
+            reward[:] = 0.0
+        rgb = np.broadcast_to(np.stack([np.full_like(ll, k + 1), ll, bb], -1)[:, :, None, None], (L, B, 2, 2, 3))
+        rollout = {"rgb": rgb.astype(np.uint8), "target": 1 + 1000 * k + 10 * ll + bb, "reset": reset,
+                   "reward": reward.astype(np.float32)}
+        stored.append(rollout)
+        buf = replay_lib.add(buf, jax.tree_util.tree_map(jnp.asarray, rollout), jnp.zeros((B, 1)))
+    return buf, stored
+
+
+@pytest.mark.parametrize("rewards_nonzero", [True, False])
+def test_sample_reward_windows(rewards_nonzero):
+    frames, n = networks.RP_FRAMES, 4000
+    buf, stored = _window_buffer(rewards_nonzero)
+    L, B = stored[0]["reset"].shape
+    valid = {(k, t, b) for k, r in enumerate(stored) for t in range(frames - 1, L - 1) for b in range(B)
+             if not r["reset"][t - frames + 2 : t + 1, b].any()}
+    assert any(stored[k]["reward"][t, b] != 0 for k, t, b in valid) == rewards_nonzero
+
+    win, reward = replay_lib.sample_reward_windows(buf, jax.random.PRNGKey(1), n, frames, ("rgb", "target"))
+    target, rgb, reward = np.asarray(win["target"]), np.asarray(win["rgb"]), np.asarray(reward)
+    assert target.shape == (n, frames) and rgb.shape == (n, frames, 2, 2, 3) and reward.shape == (n,)
+    assert np.all(target > 0), "window from an unfilled slot"
+    k, t, b = (target - 1) // 1000, (target - 1) % 1000 // 10, (target - 1) % 10
+    np.testing.assert_array_equal(rgb[..., 0, 0, :], np.stack([k + 1, t, b], -1))
+    assert np.all(k == k[:, :1]) and np.all(b == b[:, :1])
+    np.testing.assert_array_equal(t, t[:, -1:] + np.arange(1 - frames, 1))
+    last = list(zip(k[:, -1], t[:, -1], b[:, -1]))
+    assert set(last) == valid
+    np.testing.assert_array_equal(reward, [stored[kk]["reward"][tt, bb] for kk, tt, bb in last])
+    if rewards_nonzero:
+        assert abs(np.mean(reward != 0) - 0.5) < 0.05
+    else:
+        assert np.all(reward == 0)
+
+
+# -- networks -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("size", [16, 30, 64])
+def test_conv1_space_to_depth_is_the_same_function(size):
+    features = 8
+    rng = np.random.default_rng(size)
+    image = jnp.asarray(rng.integers(0, 256, size=(2, size, size, 3), dtype=np.uint8))
+    params = networks.Conv1(features, True).init(jax.random.PRNGKey(0), image)
+    params = {"params": dict(params["params"], bias=jnp.asarray(rng.normal(size=features).astype(np.float32)))}
+    fast = np.asarray(networks.Conv1(features, True).apply(params, image))
+    plain = np.asarray(networks.Conv1(features, False).apply(params, image))
+    out = -(-size // 4)
+    assert fast.shape == plain.shape == (2, out, out, features)
+    assert np.max(np.abs(fast - plain)) < 1e-4
+    if size <= 30:
+        k = np.asarray(params["params"]["kernel"], np.float64)
+        x = np.zeros((2, 4 + out * 4, 4 + out * 4, 3))
+        x[:, 4 : 4 + size, 4 : 4 + size] = np.asarray(image) / 255.0
+        ref = np.zeros((2, out, out, features))
+        for i in range(out):
+            for j in range(out):
+                ref[:, i, j] = np.einsum("nuvc,uvcf->nf", x[:, 4 * i : 4 * i + 8, 4 * j : 4 * j + 8], k)
+        ref += np.asarray(params["params"]["bias"])
+        assert np.max(np.abs(plain - ref)) < 1e-4
+
+
+# -- learner --------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def lstm():
+    learner = Learner(load_config(None, TINY))
+    return learner, learner.init(jax.random.PRNGKey(0))
+
+
+@pytest.fixture(scope="module")
+def frame_stack(lstm):
+    learner = Learner(load_config(None, TINY + ["agent.memory=frame_stack"]), env=lstm[0].env)
+    return learner, learner.init(jax.random.PRNGKey(0))
+
+
+def _random_carry(learner, n, seed):
+    leaves, tree = jax.tree_util.tree_flatten(learner.initial_agent(n).carry)
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(leaves))
+    return jax.tree_util.tree_unflatten(tree, [jax.random.normal(k, x.shape) for k, x in zip(keys, leaves)])
+
+
+@pytest.mark.parametrize("memory", ["lstm", "frame_stack"])
+def test_core_is_cleared_at_episode_starts(memory, request):
+    learner, ts = request.getfixturevalue(memory)
+    L, N, size, cut = 6, 3, learner.cfg.env.render.image_size, 3
+    rng = np.random.default_rng(6)
+    reset = np.zeros((L, N), bool)
+    reset[cut, 0] = True  # env 0: an episode starts mid-sequence
+    reset[0, 1] = True  # env 1: the sequence starts an episode; env 2: no episode start
+    seq = {
+        "rgb": rng.integers(0, 256, (L, N, size, size, 3), dtype=np.uint8),
+        "target": rng.integers(0, learner.target_rgb.shape[0], (L, N)).astype(np.int32),
+        "prev_action": rng.integers(0, learner.env.num_actions, (L, N)).astype(np.int32),
+        "prev_reward": rng.normal(size=(L, N)).astype(np.float32),
+        "reset": reset,
+    }
+    seq = jax.tree_util.tree_map(jnp.asarray, seq)
+    unroll = jax.jit(learner.unroll)
+    feats = learner.target_features(ts.params)
+    core = lambda s, c: np.asarray(unroll(ts.params, feats, s, c)[1])  # noqa: E731
+    a = core(seq, _random_carry(learner, N, 1))
+    b = core(seq, _random_carry(learner, N, 2))
+    zero = learner.initial_agent(N).carry
+    from_zero = core(seq, zero)
+    tail = core(jax.tree_util.tree_map(lambda x: x[cut:], seq), zero)
+
+    np.testing.assert_allclose(a[cut:, 0], tail[:, 0], atol=1e-5)
+    np.testing.assert_allclose(b[cut:, 0], tail[:, 0], atol=1e-5)
+    assert np.max(np.abs(a[:cut, 0] - b[:cut, 0])) > 1e-3
+    np.testing.assert_allclose(a[:, 1], from_zero[:, 1], atol=1e-5)
+    np.testing.assert_allclose(b[:, 1], from_zero[:, 1], atol=1e-5)
+    assert np.max(np.abs(a[0, 2] - b[0, 2])) > 1e-3
+
+
+def test_loss_gradients_are_finite(lstm):
+    learner, ts = lstm
+    key = jax.random.PRNGKey(3)
+    traj, *_ = jax.jit(learner._rollout)(ts.params, ts.env_state, ts.agent, key)
+    replay = replay_lib.add(ts.replay, {k: traj[k] for k in REPLAY_FIELDS}, ts.agent.carry)
+    grads, terms = jax.jit(jax.grad(learner.loss, has_aux=True))(ts.params, traj, ts.agent.carry, replay, key)
+    assert {"pixel_control", "reward_prediction", "off_policy_critic"} <= set(terms)
+    assert _finite(grads) and _finite(terms)
+    assert sum(float(jnp.sum(jnp.abs(g))) for g in jax.tree_util.tree_leaves(grads)) > 0
+
+
+def test_update_metrics_are_finite(lstm):
+    learner, ts = lstm
+    _, metrics = learner.update(jax.tree_util.tree_map(jnp.copy, ts))
+    assert {"loss/pixel_control", "loss/reward_prediction", "loss/off_policy_critic", "loss/total"} <= set(metrics)
+    assert _finite(metrics)
+
+
+def test_zero_weights_remove_replay_losses(lstm):
+    learner = Learner(load_config(None, TINY + NO_REPLAY), env=lstm[0].env)
+    assert not learner.uses_replay
+    ts = jax.eval_shape(learner.init, jax.random.PRNGKey(0))
+    assert ts.replay is None
+    _, metrics = jax.eval_shape(learner.update, ts)
+    terms = {k[len("loss/"):] for k in metrics if k.startswith("loss/")}
+    assert terms == {"actor", "critic", "entropy", "depth", "segmentation", "target_segmentation", "total"}
