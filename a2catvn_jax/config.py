@@ -230,7 +230,7 @@ class AgentConfig:
     dense_size: int = 256  # the dense layer after the conv base
     core_size: int = 256  # LSTM cells (or the frame-stack dense layer)
     segmentation_loss: Literal["mse_rgb", "cross_entropy"] = "mse_rgb"  # class colours (paper) or class ids
-    space_to_depth: bool = True  # run conv1 (8x8/4) as a 2x2/1 conv on 4x4 pixel blocks (same function, faster)
+    space_to_depth: bool = False  # run conv1 (8x8/4) as a 2x2/1 conv on 4x4 pixel blocks (the same function)
 
     def validate(self, path: str = "") -> None:
         k = functools.partial(_join, path)

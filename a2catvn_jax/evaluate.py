@@ -43,6 +43,7 @@ VIDEO_PANEL = 128  # video images are upscaled by an integer factor to at least 
 VIDEO_FPS = 10
 END_FRAMES = 5  # video frames holding an episode's outcome
 MAX_CHUNK = 128  # environment steps per compiled call
+MAX_MESSAGE = 500  # characters of an error message the command prints
 EPISODE_FIELDS = {  # per-episode list -> environment metric
     "success": "success",
     "length": "episode_length",
@@ -109,6 +110,7 @@ def _check_video(path) -> None:
 def write_video(path, frames: Sequence[np.ndarray], fps: int = VIDEO_FPS) -> None:
     """Write RGB frames as a GIF or (with imageio-ffmpeg) an MP4."""
     _check_video(path)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     if Path(path).suffix.lower() == ".gif":
         import imageio.v3 as iio
 
@@ -157,18 +159,20 @@ def _video_frames(env, steps: list[dict], episodes: int) -> list[np.ndarray]:
     target_scene = np.asarray(env.world.arrays.target_scene)
     maps: dict[int, TopdownMap] = {}
     frames, path, episode = [], [], 0
-    for t, s in enumerate(steps):
+    for s in steps:
         scene, goal = int(s["scene"]), int(s["goal"])
         if scene not in maps:
             maps[scene] = TopdownMap(env.world.scenes[scene], size * scale)
         path.append(s["pose"][:2])
         target = s["target_pose"] if target_scene[scene, goal] == scene else None
         images = [np.asarray(s[k]).repeat(scale, 0).repeat(scale, 1) for k in ("rgb", "target_rgb")]
-        text = f"episode {episode + 1}, step {len(path) - 1}"
-        frames.append(np.concatenate(images + [maps[scene].render(path, s["pose"], target, text)], axis=1))
+
+        def frame(text):
+            return np.concatenate(images + [maps[scene].render(path, s["pose"], target, text)], axis=1)
+
+        frames.append(frame(f"episode {episode + 1}, step {len(path) - 1}"))
         if s["done"]:
-            text = f"episode {episode + 1}: " + ("success" if s["success"] else "failed")
-            frames += [np.concatenate(images + [maps[scene].render(path, s["pose"], target, text)], axis=1)] * END_FRAMES
+            frames += [frame(f"episode {episode + 1}: " + ("success" if s["success"] else "failed"))] * END_FRAMES
             episode, path = episode + 1, []
             if episode == episodes:
                 break
@@ -188,10 +192,16 @@ def evaluate(
     video_episodes: int = 2,
     log: Callable[[str], None] = print,
 ) -> dict:
-    """Evaluate checkpoint `step` (default: the latest) of the run in `workdir`; returns the result dict.
+    """Evaluate checkpoint `step` (default: the latest) of the run in `workdir`.
 
-    Raises `CheckpointError` (no run, no or unreadable checkpoint), `ConfigError` (bad
-    overrides), `ValueError` (bad arguments) and `EvaluationError`.
+    Returns a JSON-ready dict: step and frames (the checkpoint's update and training
+    frames), houses, scenes (names), greedy, seed, complexity, num_envs,
+    max_episode_steps, eval_frames (environment steps taken), episodes, success_rate,
+    spl, episode_length and episode_return (means over the counted episodes),
+    per_episode (lists success, length, spl, return, start_distance), and video (its
+    path) when one is written. Raises `CheckpointError` (no run, no or unreadable
+    checkpoint), `ConfigError` (bad overrides), `ValueError` (bad arguments) and
+    `EvaluationError`.
     """
     import jax
 
@@ -253,7 +263,8 @@ def evaluate(
             v = out["video"]
             for t in range(chunk):
                 done = bool(out["done"][t, 0])
-                video_steps.append({**{k: a[t] for k, a in v.items()}, "done": done, "success": bool(out["success"][t, 0])})
+                video_steps.append({**{k: a[t] for k, a in v.items()}, "done": done,
+                                    "success": bool(out["success"][t, 0])})
                 video_done += done
                 if video_done == video_episodes:
                     break
@@ -280,7 +291,8 @@ def evaluate(
         "episode_return": float(np.mean(lists["return"])),
         "per_episode": lists,
     }
-    log(f"update {step}, {houses} houses, {'greedy' if greedy else 'sampled'} policy: {len(counted)} episodes, "
+    policy = "greedy" if greedy else "sampled"
+    log(f"update {step} ({result['frames']:,} frames), {houses} houses, {policy} policy: {len(counted)} episodes, "
         f"success {result['success_rate']:.3f}, SPL {result['spl']:.3f}, length {result['episode_length']:.1f}, "
         f"return {result['episode_return']:.3f} ({steps * B:,} frames in {seconds:.1f} s incl. compile)")
     if video is not None:
@@ -300,7 +312,8 @@ def to_json(result: dict) -> str:
 
     def block(d: dict, pad: str) -> str:
         return ",\n".join(
-            f"{pad}{json.dumps(k)}: " + (f"{{\n{block(v, pad + ' ')}\n{pad}}}" if isinstance(v, dict) else json.dumps(v))
+            f"{pad}{json.dumps(k)}: "
+            + (f"{{\n{block(v, pad + ' ')}\n{pad}}}" if isinstance(v, dict) else json.dumps(v))
             for k, v in d.items()
         )
 
@@ -314,9 +327,11 @@ def main(argv=None) -> None:
     parser.add_argument("--step", type=int, default=None, help="checkpoint update to evaluate (default: the latest)")
     parser.add_argument("--houses", choices=HOUSES, default="train", help="the training houses or held-out ones")
     parser.add_argument("--greedy", action="store_true", help="act by the policy's argmax instead of sampling")
-    parser.add_argument("--video", default=None, metavar="FILE", help="video of agent 0 (.gif, or .mp4 with imageio-ffmpeg)")
+    parser.add_argument("--video", default=None, metavar="FILE",
+                        help="video of agent 0 (.gif, or .mp4 with imageio-ffmpeg)")
     parser.add_argument("--video-episodes", type=int, default=2, help="episodes in the video (default 2)")
-    parser.add_argument("--out", default=None, metavar="FILE", help="result JSON (default DIR/eval_<step>_<houses>.json)")
+    parser.add_argument("--out", default=None, metavar="FILE",
+                        help="result JSON (default DIR/eval_<step>_<houses>.json)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--set", dest="overrides", metavar="KEY=VALUE", nargs="+", action="append", default=[],
                         help="evaluation settings, e.g. --set env.num_envs=32 env.max_episode_steps=500")
@@ -334,10 +349,11 @@ def main(argv=None) -> None:
         result = evaluate(args.workdir, args.episodes, step=args.step, houses=args.houses, greedy=args.greedy,
                           seed=args.seed, overrides=[o for group in args.overrides for o in group],
                           video=args.video, video_episodes=args.video_episodes)
-    except ConfigError as e:
+    except ValueError as e:  # configuration errors included
         parser.error(str(e))
     except (CheckpointError, EvaluationError) as e:
-        parser.exit(2, f"error: {e}\n")
+        message = str(e)  # orbax's messages can list a whole checkpoint tree
+        parser.exit(2, f"error: {message if len(message) <= MAX_MESSAGE else message[:MAX_MESSAGE] + ' ...'}\n")
     out = Path(args.out) if args.out else default_output(args.workdir, result)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(to_json(result))

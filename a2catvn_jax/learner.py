@@ -25,6 +25,7 @@ first step of every episode. Sequences are time-major: `[T, B, ...]`.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Optional
 
@@ -267,13 +268,15 @@ class Learner:
         actor, critic, neg_entropy = losses.actor_critic_losses(logits[:-1], values[:-1], traj["action"], returns)
         terms = {"actor": actor, "critic": critic, "entropy": neg_entropy}
         seg_loss = losses.cross_entropy if self.cfg.agent.segmentation_loss == "cross_entropy" else losses.mse
-        if w.depth > 0:
-            terms["depth"] = losses.mse(self._apply_flat(params, Net.depth, conv4), traj["depth_gt"])
-        if w.segmentation > 0:
-            terms["segmentation"] = seg_loss(self._apply_flat(params, Net.segmentation, conv4), traj["seg_gt"])
-        if w.target_segmentation > 0:
-            pred = self._apply_flat(params, Net.target_segmentation, conv4)
-            terms["target_segmentation"] = seg_loss(pred, self.target_seg_gt[traj["target"]])
+        heads = tuple(h for h in networks.VN_HEADS if getattr(w, h) > 0)
+        if heads:
+            pred = self._apply_flat(params, functools.partial(Net.vn_heads, heads=heads), conv4)
+            if "depth" in pred:
+                terms["depth"] = losses.mse(pred["depth"], traj["depth_gt"])
+            if "segmentation" in pred:
+                terms["segmentation"] = seg_loss(pred["segmentation"], traj["seg_gt"])
+            if "target_segmentation" in pred:
+                terms["target_segmentation"] = seg_loss(pred["target_segmentation"], self.target_seg_gt[traj["target"]])
         if replay is not None:
             terms.update(self._replay_losses(params, target_feats, replay, key))
         total = sum(getattr(w, name) * value for name, value in terms.items())

@@ -23,7 +23,7 @@ distinct target image and gathers the result.
 
 conv1 works on uint8 images. With `space_to_depth` it is computed as a 2x2/1 conv on
 4x4 pixel blocks (48 channels) with the same 8x8x3 kernel rearranged: the same
-function, several times faster on CPU. Both paths pad the image by 4 pixels at the
+function, which some backends run faster (docs/benchmarks.md). Both paths pad the image by 4 pixels at the
 top/left (and to a multiple of 4 at the bottom/right), so conv1 maps an HxW image to
 ceil(H/4) x ceil(W/4).
 """
@@ -40,6 +40,7 @@ from a2catvn_jax.config import AgentConfig
 
 REWARD_CLASSES = 3  # zero, positive, negative
 RP_FRAMES = 3  # frames seen by the reward-prediction head
+VN_HEADS = ("depth", "segmentation", "target_segmentation")
 _PC_CHANNELS = 32
 
 
@@ -53,6 +54,14 @@ def conv_grid(image_size: int) -> int:
     return math.ceil(math.ceil(image_size / 4) / 2)
 
 
+def depth_to_space(x, block: int):
+    """[N, H, W, b*b*C] -> [N, H*b, W*b, C], the inverse of `space_to_depth`."""
+    n, h, w, c = x.shape
+    c //= block * block
+    x = x.reshape(n, h, w, block, block, c).transpose(0, 1, 3, 2, 4, 5)
+    return x.reshape(n, h * block, w * block, c)
+
+
 def space_to_depth(x, block: int):
     """[N, H, W, C] -> [N, H/b, W/b, b*b*C], channels ordered (row in block, col in block, C)."""
     n, h, w, c = x.shape
@@ -64,7 +73,7 @@ class Conv1(nn.Module):
     """conv1: 8x8 stride 4 on uint8 RGB, padded 4 at the top/left; optional space-to-depth."""
 
     features: int
-    space_to_depth: bool = True
+    space_to_depth: bool = False
 
     @nn.compact
     def __call__(self, image):
@@ -111,15 +120,13 @@ class A2CATNet(nn.Module):
         g = self.pc_grid
         self.pc_half = -(-g // 2)
         self.pc_dense = nn.Dense(self.pc_half * self.pc_half * _PC_CHANNELS)
-        self.pc_value = nn.ConvTranspose(1, (4, 4), (2, 2), padding="SAME")
-        self.pc_advantage = nn.ConvTranspose(self.num_actions, (4, 4), (2, 2), padding="SAME")
+        self.pc_value = Upsample2x(1)
+        self.pc_advantage = Upsample2x(self.num_actions)
         # Reward prediction.
         self.rp = nn.Dense(REWARD_CLASSES)
         # Visual-navigation auxiliary heads.
         seg_out = 3 if self.cfg.segmentation_loss == "mse_rgb" else self.num_classes
-        self.depth_head = _UpHead(32, 1, self.aux_size)
-        self.seg_head = _UpHead(64, seg_out, self.aux_size)
-        self.target_seg_head = _UpHead(64, seg_out, self.aux_size)
+        self.vn = VNHeads({"depth": 1, "segmentation": seg_out, "target_segmentation": seg_out}, self.aux_size)
 
     # -- sizes ----------------------------------------------------------------------
 
@@ -182,14 +189,13 @@ class A2CATNet(nn.Module):
         """conv4 maps of RP_FRAMES consecutive frames [N, RP_FRAMES, g, g, c4] -> logits [N, 3]."""
         return self.rp(conv4_frames.reshape(conv4_frames.shape[0], -1))
 
-    def depth(self, conv4):
-        return self.depth_head(conv4)[..., 0]
-
-    def segmentation(self, conv4):
-        return self.seg_head(conv4)
-
-    def target_segmentation(self, conv4):
-        return self.target_seg_head(conv4)
+    def vn_heads(self, conv4, heads=VN_HEADS):
+        """Predictions of the named visual-navigation heads from conv4 maps [N, g, g, c4]:
+        depth [N, a, a]; segmentation and target_segmentation [N, a, a, 3 or classes]."""
+        out = self.vn(conv4, tuple(heads))
+        if "depth" in out:
+            out["depth"] = out["depth"][..., 0]
+        return out
 
     def __call__(self, rgb, target_rgb, prev_action, prev_reward):
         """Every parameter in one pass (used to initialise)."""
@@ -202,23 +208,62 @@ class A2CATNet(nn.Module):
             "value": value,
             "pixel_control": self.pixel_control(out),
             "reward_prediction": self.reward_prediction(stacked),
-            "depth": self.depth(conv4),
-            "segmentation": self.segmentation(conv4),
-            "target_segmentation": self.target_segmentation(conv4),
+            **self.vn_heads(conv4),
         }
 
 
-class _UpHead(nn.Module):
-    """Stride-2 deconvolution, ReLU, 3x3 conv to `out` channels at `size` x `size`."""
+class Upsample2x(nn.Module):
+    """A learned stride-2 upsampling ("deconvolution") as a sub-pixel convolution: a 2x2
+    conv to 4x the channels, each output pixel's 2x2 block taken from its own channels.
 
-    hidden: int
-    out: int
-    size: int
+    Like a 4x4 stride-2 transposed convolution, every output pixel is an affine map of a
+    2x2 input neighbourhood with weights that depend on its position in the block, at
+    the same cost; it runs several times faster than `nn.ConvTranspose` on XLA's CPU
+    backend (docs/benchmarks.md).
+    """
+
+    features: int
 
     @nn.compact
     def __call__(self, x):
-        x = nn.relu(nn.ConvTranspose(self.hidden, (4, 4), (2, 2), padding="SAME")(x))
-        x = nn.Conv(self.out, (3, 3), padding="SAME")(x)
-        if x.shape[1] >= self.size:
-            return x[:, : self.size, : self.size]
-        return jax.image.resize(x, (x.shape[0], self.size, self.size, x.shape[-1]), "bilinear")
+        y = nn.Conv(4 * self.features, (2, 2), padding=((0, 1), (0, 1)))(x)
+        return depth_to_space(y, 2)
+
+
+class VNHeads(nn.Module):
+    """Depth / observation segmentation / target segmentation heads on conv4.
+
+    Each head is a stride-2 learned upsampling to HIDDEN[head] channels, ReLU, and a 3x3
+    conv to its outputs, cropped (or resized) to `size` x `size`. The upsampling layers
+    of the requested heads read the same input, so they run as one convolution with
+    their kernels side by side: the same function as separate layers, in one pass.
+    """
+
+    outputs: dict  # head -> output channels
+    size: int
+    HIDDEN = {"depth": 32, "segmentation": 64, "target_segmentation": 64}
+
+    @nn.compact
+    def __call__(self, x, heads: tuple):
+        c_in = x.shape[-1]
+        kernels = {h: self.param(f"{h}_up_kernel", nn.initializers.lecun_normal(), (2, 2, c_in, 4 * n))
+                   for h, n in self.HIDDEN.items()}
+        biases = {h: self.param(f"{h}_up_bias", nn.initializers.zeros, (4 * n,)) for h, n in self.HIDDEN.items()}
+        finals = {h: nn.Conv(self.outputs[h], (3, 3), padding="SAME", name=f"{h}_out") for h in self.HIDDEN}
+        if not heads:
+            return {}
+        kernel = jnp.concatenate([kernels[h] for h in heads], axis=-1)
+        bias = jnp.concatenate([biases[h] for h in heads])
+        y = jax.lax.conv_general_dilated(x, kernel, (1, 1), ((0, 1), (0, 1)), dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        y = nn.relu(y + bias)
+        out, start = {}, 0
+        for h in heads:
+            width = 4 * self.HIDDEN[h]
+            z = finals[h](depth_to_space(y[..., start : start + width], 2))
+            start += width
+            if z.shape[1] >= self.size:
+                z = z[:, : self.size, : self.size]
+            else:
+                z = jax.image.resize(z, (z.shape[0], self.size, self.size, z.shape[-1]), "bilinear")
+            out[h] = z
+        return out

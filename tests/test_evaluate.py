@@ -120,21 +120,26 @@ def test_clean_errors(run, tmp_path, capsys):
     assert _error(["--workdir", str(run), "--step", "7"], capsys) == (
         f"error: {run.absolute()}: no checkpoint at update 7; available: [0, 2]"
     )
-    assert _error(["--workdir", str(tmp_path / "missing")], capsys).startswith("error: ")
+    assert _error(["--workdir", str(tmp_path / "missing")], capsys) == f"error: {tmp_path / 'missing'}: no such directory"
 
-    corrupt = tmp_path / "corrupt"
-    shutil.copytree(run, corrupt)
-    arrays = [p for p in (corrupt / "checkpoints" / "2" / "state").rglob("d/*") if p.is_file()]
-    assert arrays
-    for path in arrays:
-        path.write_bytes(b"not an array")
-    line = _error(["--workdir", str(corrupt)], capsys)
-    assert line.startswith("error: ") and "corrupt" in line
+
+def _cli(workdir) -> tuple[int, list[str]]:
+    proc = subprocess.run([sys.executable, "-m", "a2catvn_jax.evaluate", "--workdir", str(workdir)],
+                          capture_output=True, text=True, timeout=120)
+    return proc.returncode, proc.stderr.strip().splitlines()
 
 
 def test_cli_without_checkpoints(run, tmp_path):
     shutil.copy(run / "config.yaml", tmp_path / "config.yaml")
-    proc = subprocess.run([sys.executable, "-m", "a2catvn_jax.evaluate", "--workdir", str(tmp_path)],
-                          capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == [f"error: {tmp_path}: no checkpoints (missing checkpoints/)"]
+    assert _cli(tmp_path) == (2, [f"error: {tmp_path}: no checkpoints (missing checkpoints/)"])
+
+
+def test_cli_corrupt_checkpoint(run, tmp_path):
+    shutil.copytree(run, tmp_path, dirs_exist_ok=True)
+    arrays = [p for p in (tmp_path / "checkpoints" / "2" / "state").rglob("d/*") if p.is_file()]
+    assert arrays
+    for path in arrays:
+        path.write_bytes(b"not an array")
+    rc, err = _cli(tmp_path)
+    assert rc == 2 and len(err) == 1
+    assert err[0].startswith(f"error: {tmp_path / 'checkpoints' / '2'}: the checkpoint is corrupt")
