@@ -1,12 +1,25 @@
 """Throughput benchmarks.
 
     python -m a2catvn_jax.benchmark env [--batch-sizes 16 64 256 1024] [--resolutions 64 84 174]
+    python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
+    python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
 
 `env`: frames/s of `NavEnv.step` (one frame = one agent step with its RGB, depth and
 segmentation rendered) in a multi-room house, for each batch size and resolution,
 with compile times; and, for the same house MJCF at the same resolution, MuJoCo's own
 OpenGL renderer (`mujoco.Renderer`, RGB + depth + segmentation passes) at the same
 agent poses, and the ratio of the two.
+
+`train`: frames/s of `Learner.update` (rollout, replay, every loss, optimiser step)
+for the quickstart configuration and a paper-sized one (Table I: 16 environments,
+20-step rollouts, every auxiliary task, 4 houses of 2x2 rooms; `--paper-resolution`
+pixels), with compile time and the share of the time spent in the environment (a
+rollout of random actions timed alone).
+
+`network`: forward+backward frames/s of the conv base with the depth and segmentation
+heads on `--frames` (observation, target) pairs: as the learner runs it (the target
+stream once per distinct target), with both streams computed for every frame, and
+the same network in PyTorch (`pip install torch==2.13.0`), with the ratio.
 """
 
 from __future__ import annotations
@@ -80,21 +93,162 @@ def bench_mujoco_gl(env, resolution: int, poses: np.ndarray, frames: int) -> flo
     )
 
 
+PAPER = [
+    "env.num_envs=16",
+    "env.scene.kind=house",
+    "env.scene.grid=[2,2]",
+    "env.scene.num_scenes=4",
+    "env.goals_per_scene=4",
+    "env.max_episode_steps=900",
+    "train.rollout_length=20",
+    "train.replay_size=2000",
+]
+
+
+def _timed_updates(learner, updates: int):
+    """(compile seconds, frames/s) of `learner.update`."""
+    t0 = time.perf_counter()
+    state = jax.block_until_ready(learner.init(jax.random.PRNGKey(0)))
+    state, m = learner.update(state)
+    jax.block_until_ready(m)
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for _ in range(updates):
+        state, m = learner.update(state)
+    jax.block_until_ready(m)
+    return compile_s, updates * learner.frames_per_update / (time.perf_counter() - t0)
+
+
+def _env_rollout_fps(env, steps: int, repeats: int) -> float:
+    """Frames/s of `steps` environment steps with random actions, in one jitted scan."""
+
+    @jax.jit
+    def rollout(state, key):
+        def body(s, k):
+            return env.step(s, jax.random.randint(k, (env.num_envs,), 0, env.num_actions)), None
+
+        return jax.lax.scan(body, state, jax.random.split(key, steps))[0]
+
+    state = rollout(env.reset(jax.random.PRNGKey(0)), jax.random.PRNGKey(1))
+    jax.block_until_ready(state)
+    t0 = time.perf_counter()
+    for k in range(repeats):
+        state = rollout(state, jax.random.PRNGKey(k + 2))
+    jax.block_until_ready(state)
+    return repeats * steps * env.num_envs / (time.perf_counter() - t0)
+
+
+def bench_train(name: str, overrides, updates: int) -> dict:
+    from a2catvn_jax.learner import Learner
+    from a2catvn_jax.train import DEFAULT_CONFIG
+
+    cfg = load_config(DEFAULT_CONFIG if name == "quickstart" else None, overrides)
+    learner = Learner(cfg)
+    compile_s, fps = _timed_updates(learner, updates)
+    env_fps = _env_rollout_fps(learner.env, learner.T, max(2, updates))
+    return {"config": name, "batch": learner.B, "resolution": cfg.env.render.image_size, "train_fps": fps,
+            "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps}
+
+
+def bench_network(resolution: int, frames: int, targets: int, repeats: int) -> dict:
+    """Forward+backward frames/s of the conv base and VN heads: JAX as trained, JAX with
+    both streams per frame, and PyTorch (None when torch is not installed)."""
+    from a2catvn_jax.config import AgentConfig
+    from a2catvn_jax.networks import A2CATNet
+
+    net = A2CATNet(AgentConfig(), 8, resolution)
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
+    rgb = jax.random.randint(k1, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
+    target_rgb = jax.random.randint(k2, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
+    params = net.init(k3, rgb[:1], target_rgb[:1], jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
+
+    def loss(params, rgb, target_rgb, target_index):
+        target_feats = net.apply(params, target_rgb, method=A2CATNet.target_stream)
+        conv4, feats = net.apply(params, rgb, target_feats[target_index], method=A2CATNet.encode)
+        heads = net.apply(params, conv4, method=A2CATNet.vn_heads)
+        return jnp.mean(feats**2) + sum(jnp.mean(h**2) for h in heads.values())
+
+    grad = jax.jit(jax.grad(loss))
+
+    def fps(*args):
+        jax.block_until_ready(grad(params, *args))
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            out = grad(params, *args)
+        jax.block_until_ready(out)
+        return repeats * frames / (time.perf_counter() - t0)
+
+    shared = fps(rgb, target_rgb[:targets], jnp.arange(frames) % targets)
+    per_frame = fps(rgb, target_rgb, jnp.arange(frames))
+    try:
+        from a2catvn_jax import torch_reference
+    except ImportError:
+        torch_fps = None
+    else:
+        step = torch_reference.step_fn(resolution, frames)
+        step()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            step()
+        torch_fps = repeats * frames / (time.perf_counter() - t0)
+    return {"resolution": resolution, "frames": frames, "targets": targets, "jax_fps": shared,
+            "jax_per_frame_fps": per_frame, "torch_fps": torch_fps}
+
+
+def _header():
+    print(f"# {platform.node()} {platform.processor() or platform.machine()}, {jax.devices()[0].device_kind}, "
+          f"jax {jax.__version__}, {time.strftime('%Y-%m-%d')}")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.benchmark", description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=["env"], help="what to benchmark")
-    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[16, 64, 256, 1024])
-    parser.add_argument("--resolutions", type=int, nargs="+", default=[64, 84, 174])
-    parser.add_argument("--steps", type=int, default=5, help="timed steps per setting")
-    parser.add_argument("--gl-frames", type=int, default=200, help="frames timed for MuJoCo's renderer")
-    parser.add_argument("--no-gl", action="store_true", help="skip MuJoCo's OpenGL renderer")
-    parser.add_argument("--max-pixels", type=float, default=3.2e7, help="skip settings with more batch*pixels")
+    parser.add_argument("what", choices=["env", "train", "network"], help="what to benchmark")
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[16, 64, 256, 1024], help="env")
+    parser.add_argument("--resolutions", type=int, nargs="+", default=[64, 84, 174], help="env")
+    parser.add_argument("--steps", type=int, default=5, help="env: timed steps per setting")
+    parser.add_argument("--gl-frames", type=int, default=200, help="env: frames timed for MuJoCo's renderer")
+    parser.add_argument("--no-gl", action="store_true", help="env: skip MuJoCo's OpenGL renderer")
+    parser.add_argument("--max-pixels", type=float, default=3.2e7, help="env: skip settings with more batch*pixels")
+    parser.add_argument("--configs", nargs="+", choices=["quickstart", "paper"], default=["quickstart", "paper"], help="train")
+    parser.add_argument("--updates", type=int, default=5, help="train: timed updates per configuration")
+    parser.add_argument("--paper-resolution", type=int, default=84, help="train: image size of the paper-sized config")
+    parser.add_argument("--resolution", type=int, default=84, help="network: image size")
+    parser.add_argument("--frames", type=int, default=320, help="network: (observation, target) pairs per pass")
+    parser.add_argument("--targets", type=int, default=16, help="network: distinct targets among them")
+    parser.add_argument("--repeats", type=int, default=5, help="network: timed passes")
     parser.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="KEY=VALUE")
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args(argv)
+    _header()
+    if args.what == "train":
+        rows = []
+        print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'env fps':>9} {'env share':>10}")
+        for name in args.configs:
+            extra = PAPER + [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
+            r = bench_train(name, extra + list(args.overrides), args.updates)
+            rows.append(r)
+            print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
+                  f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
+    elif args.what == "network":
+        r = bench_network(args.resolution, args.frames, args.targets, args.repeats)
+        rows = [r]
+        print(f"forward+backward, {args.frames} frames at {args.resolution}x{args.resolution}, frames/s:")
+        print(f"  JAX, target stream once per distinct target ({args.targets}): {r['jax_fps']:.0f}")
+        print(f"  JAX, both streams every frame:                      {r['jax_per_frame_fps']:.0f}")
+        if r["torch_fps"] is None:
+            print("  PyTorch: not installed (pip install torch==2.13.0)")
+        else:
+            print(f"  PyTorch {__import__('torch').__version__}, both streams every frame:      {r['torch_fps']:.0f}")
+            print(f"  ratio JAX as trained / PyTorch: {r['jax_fps'] / r['torch_fps']:.2f}; "
+                  f"like for like: {r['jax_per_frame_fps'] / r['torch_fps']:.2f}")
+    else:
+        rows = _bench_env_table(args)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=1)
 
-    print(f"# {platform.node()} {platform.processor() or platform.machine()}, {jax.devices()[0].device_kind}, "
-          f"jax {jax.__version__}, {time.strftime('%Y-%m-%d')}")
+
+def _bench_env_table(args) -> list:
     rows = []
     gl_cache = {}
     header = f"{'batch':>6} {'res':>5} {'geoms':>6} {'env fps':>10} {'compile s':>10} {'GL fps':>8} {'ratio':>7}"
@@ -121,9 +275,7 @@ def main(argv=None) -> None:
             ratio_s = f"{r['ratio']:7.2f}" if gl else f"{'-':>7}"
             print(f"{batch:>6} {res:>5} {r['geoms']:>6} {r['frames_per_s']:10.0f} {r['compile_s']:10.1f} {gl_s} {ratio_s}", flush=True)
             del env
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rows, f, indent=1)
+    return rows
 
 
 if __name__ == "__main__":
