@@ -150,13 +150,13 @@ def bench_train(name: str, overrides, updates: int) -> dict:
             "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps}
 
 
-def bench_network(resolution: int, frames: int, targets: int, repeats: int) -> dict:
+def bench_network(resolution: int, frames: int, targets: int, repeats: int, overrides=()) -> dict:
     """Forward+backward frames/s of the conv base and VN heads: JAX as trained, JAX with
-    both streams per frame, and PyTorch (None when torch is not installed)."""
-    from a2catvn_jax.config import AgentConfig
+    both streams per frame, and PyTorch (None when torch is not installed). `overrides`
+    may set `agent.*` keys (e.g. agent.space_to_depth=true)."""
     from a2catvn_jax.networks import A2CATNet
 
-    net = A2CATNet(AgentConfig(), 8, resolution)
+    net = A2CATNet(load_config(None, overrides).agent, 8, resolution)
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
     rgb = jax.random.randint(k1, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
     target_rgb = jax.random.randint(k2, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
@@ -230,7 +230,7 @@ def main(argv=None) -> None:
             print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
                   f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
     elif args.what == "network":
-        r = bench_network(args.resolution, args.frames, args.targets, args.repeats)
+        r = bench_network(args.resolution, args.frames, args.targets, args.repeats, args.overrides)
         rows = [r]
         print(f"forward+backward, {args.frames} frames at {args.resolution}x{args.resolution}, frames/s:")
         print(f"  JAX, target stream once per distinct target ({args.targets}): {r['jax_fps']:.0f}")

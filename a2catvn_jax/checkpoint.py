@@ -108,7 +108,7 @@ class Checkpointer:
         try:
             meta = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
         except Exception as e:  # noqa: BLE001 - orbax raises many kinds
-            raise CheckpointError(f"{path}: cannot read the checkpoint record ({type(e).__name__}: {e})") from None
+            raise CheckpointError(f"{path}: cannot read the checkpoint record ({type(e).__name__}: {_short(str(e))})") from None
         if cfg is not None:
             try:
                 saved = from_dict(Config, meta["config"])
@@ -126,7 +126,7 @@ class Checkpointer:
         except Exception as e:  # noqa: BLE001
             raise CheckpointError(
                 f"{path}: the checkpoint is corrupt or does not match this configuration "
-                f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+                f"({type(e).__name__}: {_short(str(e))})"
             ) from None
         state = restored["state"]
         paths = jax.tree_util.tree_flatten_with_path(abstract)[0]
@@ -138,3 +138,9 @@ class Checkpointer:
 
     def close(self):
         self.manager.close()
+
+
+def _short(message: str, limit: int = 300) -> str:
+    """The first line of an error message, at most `limit` characters."""
+    line = message.strip().splitlines()[0] if message.strip() else ""
+    return line if len(line) <= limit else line[: limit - 3] + "..."

@@ -79,11 +79,11 @@ def main(argv=None) -> None:
     print(f"{args.steps} steps x {env.num_envs} agents in {dt:.1f} s ({args.steps * env.num_envs / dt:.0f} frames/s incl. compile)")
     print(f"episodes ended: {ended}, successes: {success}, mean length: {np.mean(lengths) if lengths else float('nan'):.1f}, "
           f"mean SPL: {np.mean(spls) if spls else float('nan'):.3f}")
-    import imageio.v2 as imageio
+    from a2catvn_jax.evaluate import write_video
 
     scale = max(1, 256 // frames[0].shape[0])
     frames = [np.kron(f, np.ones((scale, scale, 1), np.uint8)) for f in frames]
-    imageio.mimsave(args.out, frames, duration=0.1) if args.out.endswith(".gif") else imageio.mimsave(args.out, frames, fps=10)
+    write_video(args.out, frames)
     print(f"wrote {args.out} ({len(frames)} frames: observation | target | depth | segmentation)")
 
 

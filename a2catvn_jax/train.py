@@ -17,6 +17,7 @@ with an error and leaves the last good checkpoint in place.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import signal
 import sys
@@ -46,8 +47,13 @@ class _StopFlag:
         print("\nstopping after this update (Ctrl-C again to abort without a checkpoint)", file=sys.stderr)
 
 
-def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: bool = True, log=print):
-    """Train `cfg` in `workdir`; returns (learner, final train state, last log row)."""
+def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: bool = True, log=None):
+    """Train `cfg` in `workdir`; returns (learner, final train state, last log row).
+
+    `max_updates` bounds the updates of this call (default: up to train.total_frames);
+    `log` receives the text lines (default: print).
+    """
+    log = log or functools.partial(print, flush=True)
     import jax
 
     from a2catvn_jax.checkpoint import Checkpointer, CheckpointError
