@@ -27,6 +27,9 @@ from a2catvn_jax import losses, networks
 from a2catvn_jax import replay as replay_lib
 from a2catvn_jax.config import load_config
 from a2catvn_jax.learner import REPLAY_FIELDS, Learner
+from a2catvn_jax.networks import A2CATNet
+from a2catvn_jax.scenes.spec import NUM_CLASSES
+from a2catvn_jax.world import SEGMENTATION_COLORS
 
 TINY = [
     "env.num_envs=4",
@@ -284,7 +287,9 @@ def lstm():
 
 @pytest.fixture(scope="module")
 def frame_stack(lstm):
-    learner = Learner(load_config(None, TINY + ["agent.memory=frame_stack"]), env=lstm[0].env)
+    """The non-default network settings together: frame stack, class-id segmentation, space-to-depth conv1."""
+    extra = ["agent.memory=frame_stack", "agent.segmentation_loss=cross_entropy", "agent.space_to_depth=true"]
+    learner = Learner(load_config(None, TINY + extra), env=lstm[0].env)
     return learner, learner.init(jax.random.PRNGKey(0))
 
 
@@ -353,3 +358,31 @@ def test_zero_weights_remove_replay_losses(lstm):
     _, metrics = jax.eval_shape(learner.update, ts)
     terms = {k[len("loss/"):] for k in metrics if k.startswith("loss/")}
     assert terms == {"actor", "critic", "entropy", "depth", "segmentation", "target_segmentation", "total"}
+
+
+def test_segmentation_targets_in_both_encodings(lstm, frame_stack):
+    seg = np.random.default_rng(0).integers(0, NUM_CLASSES, (2, 16, 16))
+    colours = lstm[0]._seg_targets(jnp.asarray(seg))
+    ids = frame_stack[0]._seg_targets(jnp.asarray(seg))
+    factor = lstm[0].cfg.train.aux_downsize
+    want = (SEGMENTATION_COLORS[seg] / 255.0).reshape(2, 4, factor, 4, factor, 3).mean(axis=(2, 4))
+    np.testing.assert_allclose(np.asarray(colours), want, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(ids), seg[:, factor // 2 :: factor, factor // 2 :: factor])
+
+
+def test_cross_entropy_segmentation_update(frame_stack):
+    learner, ts = frame_stack
+    key = jax.random.PRNGKey(4)
+    traj, *_ = jax.jit(learner._rollout)(ts.params, ts.env_state, ts.agent, key)
+    _, terms = jax.jit(learner.loss)(ts.params, traj, ts.agent.carry, None, key)
+    conv4, _ = jax.jit(learner.unroll)(ts.params, learner.target_features(ts.params), traj, ts.agent.carry)
+    pred = learner.net.apply(ts.params, conv4.reshape((-1,) + conv4.shape[2:]), method=A2CATNet.vn_heads)
+    logits = np.asarray(pred["segmentation"], np.float64)
+    assert logits.shape[-1] == NUM_CLASSES
+    labels = np.asarray(traj["seg_gt"]).reshape(logits.shape[:-1])
+    log_p = logits - logits.max(-1, keepdims=True)
+    log_p -= np.log(np.exp(log_p).sum(-1, keepdims=True))
+    want = -np.take_along_axis(log_p, labels[..., None], -1).mean()
+    np.testing.assert_allclose(float(terms["segmentation"]), want, rtol=1e-4)
+    _, metrics = learner.update(jax.tree_util.tree_map(jnp.copy, ts))
+    assert _finite(metrics)
