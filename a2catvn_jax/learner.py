@@ -45,7 +45,6 @@ DEPTH_SCALE = 0.1  # depth targets are metres * DEPTH_SCALE
 INPUT_FIELDS = ("rgb", "target", "prev_action", "prev_reward", "reset")  # [T+1, B] network inputs
 STEP_FIELDS = ("action", "reward", "done")  # [T, B]
 REPLAY_FIELDS = INPUT_FIELDS + STEP_FIELDS
-EPISODE_STATS = ("episodes", "successes", "length_sum", "spl_sum", "return_sum")
 
 
 @struct.dataclass
@@ -92,9 +91,9 @@ class Learner:
         arrays = self.env.world.arrays
         S, G = arrays.target_rgb.shape[:2]
         self.goals_per_scene = G
+        self._colors = jnp.asarray(SEGMENTATION_COLORS, jnp.float32) / 255.0
         self.target_rgb = arrays.target_rgb.reshape((S * G,) + arrays.target_rgb.shape[2:])
         self.target_seg_gt = self._seg_targets(arrays.target_seg.reshape((S * G,) + arrays.target_seg.shape[2:]))
-        self._colors = jnp.asarray(SEGMENTATION_COLORS, jnp.float32) / 255.0
 
         self.schedule = (
             optax.linear_schedule(tc.learning_rate, 0.0, self.total_updates)
@@ -191,24 +190,26 @@ class Learner:
         f = self.cfg.train.aux_downsize
         if self.cfg.agent.segmentation_loss == "cross_entropy":
             return losses.downsize_pick(seg, f).astype(jnp.int32)
-        colors = jnp.asarray(SEGMENTATION_COLORS, jnp.float32) / 255.0
-        return losses.downsize_mean(colors[seg], f)
+        return losses.downsize_mean(self._colors[seg], f)
+
+    def _frame_targets(self, env_state) -> dict:
+        """Depth and segmentation ground truth of the current frames, for the losses that are on."""
+        out = {}
+        if self.weights.depth > 0:
+            out["depth_gt"] = losses.downsize_mean(env_state.obs["depth"], self.cfg.train.aux_downsize) * DEPTH_SCALE
+        if self.weights.segmentation > 0:
+            out["seg_gt"] = self._seg_targets(env_state.obs["segmentation"])
+        return out
 
     def _rollout(self, params, env_state, agent: AgentState, key):
         """T steps in all environments: (trajectory, env state, agent state, episode stats)."""
         target_feats = self.target_features(params)
-        w = self.weights
-        f = self.cfg.train.aux_downsize
 
         def step(carry, k):
             env_state, agent = carry
             inputs = self.inputs(env_state, agent)
             core, action, _, _ = self.act(params, target_feats, agent, env_state, k)
-            record = dict(inputs)
-            if w.depth > 0:
-                record["depth_gt"] = losses.downsize_mean(env_state.obs["depth"], f) * DEPTH_SCALE
-            if w.segmentation > 0:
-                record["seg_gt"] = self._seg_targets(env_state.obs["segmentation"])
+            record = dict(inputs, **self._frame_targets(env_state))
             env_state = self.env.step(env_state, action)
             m = env_state.metrics
             done = env_state.done
@@ -223,11 +224,7 @@ class Learner:
             return (env_state, self.observe(core, action, env_state)), (record, step_rec, stats)
 
         (env_state, agent_out), (recs, steps, stats) = jax.lax.scan(step, (env_state, agent), jax.random.split(key, self.T))
-        last = dict(self.inputs(env_state, agent_out))
-        if w.depth > 0:
-            last["depth_gt"] = losses.downsize_mean(env_state.obs["depth"], f) * DEPTH_SCALE
-        if w.segmentation > 0:
-            last["seg_gt"] = self._seg_targets(env_state.obs["segmentation"])
+        last = dict(self.inputs(env_state, agent_out), **self._frame_targets(env_state))
         traj = jax.tree_util.tree_map(lambda seq, x: jnp.concatenate([seq, x[None]]), recs, last)
         traj.update(steps)
         stats = {k: v.sum() for k, v in stats.items()}
