@@ -131,3 +131,32 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(tmp_path):
     rows = read_jsonl(tmp_path / "metrics.jsonl")
     assert all(np.isfinite(r["loss/total"]) for r in rows)
     assert json.dumps(meta)  # the record is plain JSON
+
+
+def test_ctrl_c_saves_a_checkpoint(tmp_path):
+    """SIGINT stops the command after the current update, with a checkpoint of it."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    cmd = [sys.executable, "-m", "a2catvn_jax.train", "--workdir", str(tmp_path), "--no-progress", "--updates", "100000",
+           "--set", *TINY, "train.checkpoint_every=100000"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=Path(__file__).resolve().parents[1])
+    metrics = tmp_path / "metrics.jsonl"
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None:
+        if metrics.exists() and len(metrics.read_text().splitlines()) >= 3:
+            break
+        time.sleep(0.5)
+    assert proc.poll() is None, proc.communicate()[1][-2000:]
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err[-2000:]
+    last = read_jsonl(metrics)[-1]["update"]
+    steps = Checkpointer(tmp_path, create=False).steps()
+    assert max(steps) >= last and max(steps) > 0
+    assert "checkpoint at update" in out
+    assert os.path.exists(tmp_path / "config.yaml")
