@@ -1,21 +1,22 @@
 """Evaluate a trained agent: success rate, SPL, episode statistics, and a video.
 
     python -m a2catvn_jax.evaluate --workdir DIR [--episodes 100] [--step N]
-        [--houses train|held-out] [--greedy] [--video FILE.gif|.mp4] [--video-episodes 2]
-        [--out FILE.json] [--seed 0] [--set KEY=VALUE ...]
+        [--houses train|held-out] [--policy sample|greedy|random] [--video FILE.gif|.mp4]
+        [--video-episodes 2] [--out FILE.json] [--seed 0] [--set KEY=VALUE ...]
 
 The parameters of a checkpoint of the run in DIR (the latest, or update N) are
-restored with the run's own configuration. The policy (sampled, or its argmax with
-`--greedy`) then acts in all B environments at curriculum complexity 1 until every
-environment has finished ceil(episodes / B) episodes; the first `--episodes` of these,
-in environment order, are counted, so that short episodes are not favoured.
+restored with the run's own configuration. The policy (sampled; its argmax with
+`--policy greedy`; or, as a baseline, uniformly random actions with `--policy random`)
+then acts in all B environments at curriculum complexity 1 until every environment
+has finished ceil(episodes / B) episodes; the first `--episodes` of these, in
+environment order, are counted, so that short episodes are not favoured.
 
 `--houses held-out` generates houses the run never trained in (the same generator and
 settings, seeds offset by `HELD_OUT_OFFSET`). `--set` changes evaluation settings
 (`env.num_envs`, `env.max_episode_steps`, `env.complexity`, noise, ...); keys that
 shape the network are refused.
 
-The result is printed and written as JSON (default DIR/eval_<step>_<houses>.json).
+The result is printed and written as JSON (default DIR/eval_<step>_<houses>_<policy>.json).
 `--video` shows agent 0's first episodes: observation | target image | top-down map
 with the path so far, the agent's pose (blue) and the target pose (red).
 """
@@ -121,7 +122,10 @@ def write_video(path, frames: Sequence[np.ndarray], fps: int = VIDEO_FPS) -> Non
         imageio.mimsave(path, frames, fps=fps)
 
 
-def _chunk_fn(learner, steps: int, greedy: bool, video: bool):
+POLICIES = ("sample", "greedy", "random")
+
+
+def _chunk_fn(learner, steps: int, policy: str, video: bool):
     """Jitted: `steps` environment steps of the policy in all environments."""
     import jax
 
@@ -130,7 +134,9 @@ def _chunk_fn(learner, steps: int, greedy: bool, video: bool):
     def run(params, target_feats, env_state, agent, key):
         def body(carry, k):
             env_state, agent = carry
-            core, action, _, _ = learner.act(params, target_feats, agent, env_state, k, greedy)
+            core, action, _, _ = learner.act(params, target_feats, agent, env_state, k, policy == "greedy")
+            if policy == "random":
+                action = jax.random.randint(k, action.shape, 0, env.num_actions)
             nxt = env.step(env_state, action)
             out = {name: nxt.metrics[metric] for name, metric in EPISODE_FIELDS.items()}
             out["done"] = nxt.done
@@ -185,7 +191,7 @@ def evaluate(
     *,
     step: Optional[int] = None,
     houses: str = "train",
-    greedy: bool = False,
+    policy: str = "sample",
     seed: int = 0,
     overrides: Sequence[str] = (),
     video=None,
@@ -195,7 +201,7 @@ def evaluate(
     """Evaluate checkpoint `step` (default: the latest) of the run in `workdir`.
 
     Returns a JSON-ready dict: step and frames (the checkpoint's update and training
-    frames), houses, scenes (names), greedy, seed, complexity, num_envs,
+    frames), houses, scenes (names), policy, seed, complexity, num_envs,
     max_episode_steps, eval_frames (environment steps taken), episodes, success_rate,
     spl, episode_length and episode_return (means over the counted episodes),
     per_episode (lists success, length, spl, return, start_distance), and video (its
@@ -211,6 +217,8 @@ def evaluate(
 
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if policy not in POLICIES:
+        raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
     if houses not in HOUSES:
         raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
     if video is not None:
@@ -241,7 +249,7 @@ def evaluate(
     B = env.num_envs
     per_env = math.ceil(episodes / B)
     chunk = min(MAX_CHUNK, per_env * cfg.env.max_episode_steps)
-    run = _chunk_fn(learner, chunk, greedy, video is not None)
+    run = _chunk_fn(learner, chunk, policy, video is not None)
     k_reset, key = jax.random.split(jax.random.PRNGKey(seed))
     env_state = jax.jit(lambda k: env.reset(k, complexity=cfg.env.complexity))(k_reset)
     agent = learner.initial_agent()
@@ -278,7 +286,7 @@ def evaluate(
         "frames": int(meta["frames"]),
         "houses": houses,
         "scenes": [scene.name for scene in env.world.scenes],
-        "greedy": greedy,
+        "policy": policy,
         "seed": seed,
         "complexity": cfg.env.complexity,
         "num_envs": B,
@@ -291,7 +299,6 @@ def evaluate(
         "episode_return": float(np.mean(lists["return"])),
         "per_episode": lists,
     }
-    policy = "greedy" if greedy else "sampled"
     log(f"update {step} ({result['frames']:,} frames), {houses} houses, {policy} policy: {len(counted)} episodes, "
         f"success {result['success_rate']:.3f}, SPL {result['spl']:.3f}, length {result['episode_length']:.1f}, "
         f"return {result['episode_return']:.3f} ({steps * B:,} frames in {seconds:.1f} s incl. compile)")
@@ -304,7 +311,7 @@ def evaluate(
 
 
 def default_output(workdir, result: dict) -> Path:
-    return Path(workdir) / f"eval_{result['step']}_{result['houses']}.json"
+    return Path(workdir) / f"eval_{result['step']}_{result['houses']}_{result['policy']}.json"
 
 
 def to_json(result: dict) -> str:
@@ -326,12 +333,13 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=100, help="episodes to count (default 100)")
     parser.add_argument("--step", type=int, default=None, help="checkpoint update to evaluate (default: the latest)")
     parser.add_argument("--houses", choices=HOUSES, default="train", help="the training houses or held-out ones")
-    parser.add_argument("--greedy", action="store_true", help="act by the policy's argmax instead of sampling")
+    parser.add_argument("--policy", choices=POLICIES, default="sample",
+                        help="sample from the policy, take its argmax, or act uniformly at random (a baseline)")
     parser.add_argument("--video", default=None, metavar="FILE",
                         help="video of agent 0 (.gif, or .mp4 with imageio-ffmpeg)")
     parser.add_argument("--video-episodes", type=int, default=2, help="episodes in the video (default 2)")
     parser.add_argument("--out", default=None, metavar="FILE",
-                        help="result JSON (default DIR/eval_<step>_<houses>.json)")
+                        help="result JSON (default DIR/eval_<step>_<houses>_<policy>.json)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--set", dest="overrides", metavar="KEY=VALUE", nargs="+", action="append", default=[],
                         help="evaluation settings, e.g. --set env.num_envs=32 env.max_episode_steps=500")
@@ -346,7 +354,7 @@ def main(argv=None) -> None:
     from a2catvn_jax.checkpoint import CheckpointError
 
     try:
-        result = evaluate(args.workdir, args.episodes, step=args.step, houses=args.houses, greedy=args.greedy,
+        result = evaluate(args.workdir, args.episodes, step=args.step, houses=args.houses, policy=args.policy,
                           seed=args.seed, overrides=[o for group in args.overrides for o in group],
                           video=args.video, video_episodes=args.video_episodes)
     except ValueError as e:  # configuration errors included

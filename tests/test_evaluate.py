@@ -27,7 +27,7 @@ TINY = ["env.num_envs=4", "env.render.image_size=16", "env.render.culling=false"
         "train.replay_size=8", "train.replay_batch=2", "agent.conv_channels=[4,8,8,8]", "agent.dense_size=16",
         "agent.core_size=16", "train.log_every=1"]
 EPISODES = 6
-FIELDS = ("step", "frames", "episodes", "success_rate", "spl", "episode_length", "episode_return", "houses", "greedy",
+FIELDS = ("step", "frames", "episodes", "success_rate", "spl", "episode_length", "episode_return", "houses", "policy",
           "per_episode")
 PER_EPISODE = ("success", "length", "spl", "return", "start_distance")
 
@@ -49,7 +49,7 @@ def cli_result(run, tmp_path_factory):
     video = tmp_path_factory.mktemp("video") / "agent.gif"
     main(["--workdir", str(run), "--episodes", str(EPISODES), "--seed", "3", "--video", str(video),
           "--video-episodes", "1"])
-    return json.loads(default_output(run, {"step": 2, "houses": "train"}).read_text()), video
+    return json.loads(default_output(run, {"step": 2, "houses": "train", "policy": "sample"}).read_text()), video
 
 
 def test_result_fields_are_consistent(cli_result):
@@ -57,7 +57,7 @@ def test_result_fields_are_consistent(cli_result):
     for key in FIELDS:
         assert key in result
     assert result["step"] == 2 and result["frames"] == 2 * 4 * 4
-    assert result["houses"] == "train" and result["greedy"] is False
+    assert result["houses"] == "train" and result["policy"] == "sample"
     assert result["episodes"] == EPISODES
     per = result["per_episode"]
     assert all(len(per[k]) == EPISODES for k in PER_EPISODE)
@@ -91,9 +91,9 @@ def test_held_out_houses(run, cli_result):
     layout = mjcf.layout_of([train_scene, held_scene])
     assert mjcf.scene_to_mjcf(train_scene, layout) != mjcf.scene_to_mjcf(held_scene, layout)
 
-    result = evaluate(run, 3, houses="held-out", greedy=True, overrides=["env.num_envs=2", "env.max_episode_steps=8"],
+    result = evaluate(run, 3, houses="held-out", policy="greedy", overrides=["env.num_envs=2", "env.max_episode_steps=8"],
                       log=quiet)
-    assert result["houses"] == "held-out" and result["greedy"] is True and result["num_envs"] == 2
+    assert result["houses"] == "held-out" and result["policy"] == "greedy" and result["num_envs"] == 2
     assert result["scenes"] == [held_scene.name] and result["scenes"] != cli_result[0]["scenes"]
     assert result["episodes"] == 3 and all(n <= 8 for n in result["per_episode"]["length"])
 
@@ -143,3 +143,14 @@ def test_cli_corrupt_checkpoint(run, tmp_path):
     rc, err = _cli(tmp_path)
     assert rc == 2 and len(err) == 1
     assert err[0].startswith(f"error: {tmp_path / 'checkpoints' / '2'}: the checkpoint is corrupt")
+
+
+def test_random_policy_baseline(run):
+    """`policy="random"` runs the same evaluation with uniformly random actions."""
+    kwargs = dict(overrides=["env.max_episode_steps=40"], log=quiet)
+    random_result = evaluate(run, 8, policy="random", **kwargs)
+    sampled = evaluate(run, 8, policy="sample", **kwargs)
+    assert random_result["policy"] == "random" and random_result["episodes"] == 8
+    assert 0 <= random_result["spl"] <= random_result["success_rate"] <= 1
+    per_r, per_s = random_result["per_episode"], sampled["per_episode"]
+    assert (per_r["length"], per_r["spl"]) != (per_s["length"], per_s["spl"])
