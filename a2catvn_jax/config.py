@@ -279,6 +279,9 @@ class TrainConfig:
     pixel_control_cell: int = 4
     aux_downsize: int = 4  # depth / segmentation targets are downsized by this factor
     loss_weights: LossWeights = field(default_factory=LossWeights)
+    curriculum: bool = False  # complexity tau rises linearly between two frame counts (paper)
+    curriculum_complexity: tuple[float, float] = (0.3, 1.0)  # tau before the first and after the second
+    curriculum_frames: tuple[int, int] = (5_000_000, 10_000_000)
     log_every: int = 10  # updates between log lines
     checkpoint_every: int = 500  # updates between checkpoints (and one on exit)
     keep_checkpoints: int = 3
@@ -295,6 +298,10 @@ class TrainConfig:
         for name in ("learning_rate", "rmsprop_eps", "max_grad_norm"):
             v = getattr(self, name)
             _check(v > 0, k(name), f"must be > 0, got {v}")
+        lo, hi = self.curriculum_complexity
+        _check(0 <= lo <= 1 and 0 <= hi <= 1, k("curriculum_complexity"), f"both must be in [0, 1], got {[lo, hi]}")
+        f0, f1 = self.curriculum_frames
+        _check(0 <= f0 <= f1, k("curriculum_frames"), f"need 0 <= start <= end, got {[f0, f1]}")
         _check(
             self.replay_size >= self.rollout_length,
             k("replay_size"),

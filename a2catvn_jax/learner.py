@@ -20,7 +20,9 @@ are three configurations of this one code path; with no replay loss on there is 
 replay buffer either.
 
 The memory core's state is carried from one rollout to the next and cleared at the
-first step of every episode. Sequences are time-major: `[T, B, ...]`.
+first step of every episode. With `train.curriculum` the environment's complexity tau
+follows a linear schedule in the frame count, set at the start of every update (data,
+not a compile-time constant). Sequences are time-major: `[T, B, ...]`.
 """
 
 from __future__ import annotations
@@ -114,7 +116,7 @@ class Learner:
         size = self.cfg.env.render.image_size
         img = jnp.zeros((1, size, size, 3), jnp.uint8)
         params = self.net.init(k_param, img, img, jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
-        env_state = self.env.reset(k_env)
+        env_state = self.env.reset(k_env, complexity=self.complexity(0))
         replay = None
         if self.uses_replay:
             example = self._replay_example()
@@ -143,6 +145,15 @@ class Learner:
 
     def frames(self, ts: TrainState):
         return ts.update * self.frames_per_update
+
+    def complexity(self, frames):
+        """Curriculum complexity tau after `frames` frames (paper: 0.3 -> 1.0 from 5M to 10M frames)."""
+        tc = self.cfg.train
+        if not tc.curriculum:
+            return jnp.float32(self.cfg.env.complexity)
+        (t0, t1), (f0, f1) = tc.curriculum_complexity, tc.curriculum_frames
+        frac = jnp.clip((jnp.asarray(frames, jnp.float32) - f0) / max(f1 - f0, 1), 0.0, 1.0)
+        return jnp.float32(t0) + (t1 - t0) * frac
 
     # -- acting -----------------------------------------------------------------------------
 
@@ -310,7 +321,9 @@ class Learner:
     def _update(self, ts: TrainState):
         key, k_roll, k_loss = jax.random.split(ts.key, 3)
         carry0 = ts.agent.carry
-        traj, env_state, agent, stats = self._rollout(ts.params, ts.env_state, ts.agent, k_roll)
+        tau = self.complexity(self.frames(ts))
+        env_state = self.env.set_complexity(ts.env_state, tau) if self.cfg.train.curriculum else ts.env_state
+        traj, env_state, agent, stats = self._rollout(ts.params, env_state, ts.agent, k_roll)
         replay = ts.replay
         if replay is not None:
             replay = replay_lib.add(replay, {k: traj[k] for k in REPLAY_FIELDS}, carry0)
@@ -322,6 +335,7 @@ class Learner:
             "loss/total": total,
             "grad_norm": optax.tree.norm(grads),
             "learning_rate": self.schedule(ts.update),
+            "complexity": tau,
             **stats,
         })
         new = TrainState(params, opt_state, env_state, agent, replay, key, ts.update + 1)

@@ -386,3 +386,21 @@ def test_cross_entropy_segmentation_update(frame_stack):
     np.testing.assert_allclose(float(terms["segmentation"]), want, rtol=1e-4)
     _, metrics = learner.update(jax.tree_util.tree_map(jnp.copy, ts))
     assert _finite(metrics)
+
+
+def test_curriculum_schedule_drives_the_environment(lstm):
+    """tau rises linearly between the two frame counts, reaches the environment, and needs no recompile."""
+    extra = ["train.curriculum=true", "train.curriculum_complexity=[0.2,0.8]", "train.curriculum_frames=[16,48]"]
+    learner = Learner(load_config(None, TINY + extra), env=lstm[0].env)
+    per_update = learner.frames_per_update  # 16 frames
+    ts = learner.init(jax.random.PRNGKey(0))
+    assert np.allclose(np.asarray(ts.env_state.info["complexity"]), 0.2)
+    seen = []
+    for _ in range(5):
+        ts, metrics = learner.update(ts)
+        seen.append(float(metrics["complexity"]))
+        assert np.allclose(np.asarray(ts.env_state.info["complexity"]), seen[-1])
+    frames = np.arange(5) * per_update
+    want = 0.2 + 0.6 * np.clip((frames - 16) / 32, 0, 1)
+    np.testing.assert_allclose(seen, want, atol=1e-6)
+    assert learner.update._cache_size() == 1
