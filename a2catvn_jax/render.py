@@ -50,45 +50,35 @@ _LIGHT = np.array([0.4, 0.6, 1.0], np.float32) / np.linalg.norm([0.4, 0.6, 1.0])
 class CameraSpec:
     """Static camera and renderer settings (they fix array shapes).
 
-    candidates: per tile, how many world-aligned boxes (walls, floors, most furniture)
-      the culled renderer tests; 0 disables culling (every ray tests every geom).
-    object_candidates: the same for each other geom family (oriented boxes,
-      ellipsoids, capsules), capped by `candidates`.
+    candidates: per tile and geom family, how many geoms the culled renderer tests;
+      0 disables culling (every ray tests every geom).
     tile_columns: image columns per culling tile (reduced to a divisor of `width`).
-    chunk_frames: `render_batch` renders its frames this many at a time (a loop over
-      chunks keeps each chunk's images in cache); 0 picks about 2**17 pixels a chunk.
+    fallback_frames: how many frames of a batch may be re-rendered without culling
+      before the whole batch is (keeps the rare failures of culling cheap); 0 means
+      the larger of 8 and an eighth of the batch.
     """
 
     height: int
     width: int
     fovy: float = 60.0
     candidates: int = 24
-    object_candidates: int = 4
     tile_columns: int = 4
-    chunk_frames: int = 0
+    fallback_frames: int = 0
 
     def __post_init__(self):
         if self.height < 1 or self.width < 1:
             raise ValueError(f"image size must be positive, got {self.height}x{self.width}")
         if not 0.0 < self.fovy < 180.0:
             raise ValueError(f"fovy must be in (0, 180) degrees, got {self.fovy}")
-        if min(self.candidates, self.object_candidates, self.chunk_frames) < 0 or self.tile_columns < 1:
+        if self.candidates < 0 or self.tile_columns < 1 or self.fallback_frames < 0:
             raise ValueError(
-                "candidates, object_candidates and chunk_frames must be >= 0 and tile_columns >= 1, got "
-                f"{self.candidates}, {self.object_candidates}, {self.chunk_frames}, {self.tile_columns}"
+                "candidates and fallback_frames must be >= 0 and tile_columns >= 1, got "
+                f"{self.candidates}, {self.tile_columns}, {self.fallback_frames}"
             )
 
     @property
     def tile(self) -> int:
         return max(c for c in range(1, min(self.tile_columns, self.width) + 1) if self.width % c == 0)
-
-    def cap(self, family: str) -> int:
-        """Candidates per tile of a geom family."""
-        return self.candidates if family == "abox" else min(self.candidates, max(self.object_candidates, 1))
-
-    def chunk(self, batch: int) -> int:
-        n = self.chunk_frames or max(1, round(2**17 / (self.height * self.width)))
-        return max(1, min(n, batch))
 
 
 class Frame(NamedTuple):
@@ -98,8 +88,7 @@ class Frame(NamedTuple):
     depth: jnp.ndarray  # float32 metres along the ray, 0 where nothing is hit
     geom: jnp.ndarray  # int32 MuJoCo geom id, -1 where nothing is hit
     cls: jnp.ndarray  # int32 semantic class, 0 where nothing is hit
-    fallback: jnp.ndarray  # bool [...]: some tiles failed culling's check (render_batch
-    # re-rendered those against every geom; `render` with culling leaves them wrong)
+    fallback: jnp.ndarray  # bool [...]: culling could not be trusted, rendered in full
 
 
 # ----------------------------------------------------------------------------------
@@ -280,36 +269,31 @@ def _occlusion_estimate(geom: Geometry, c, right, left, half_angle):
 
 
 def _tile_candidates(geom: Geometry, cam_pos, dirs, spec: CameraSpec):
-    """Per family, the geoms each tile must test, and the distance bound of each tile.
+    """Per family, the geoms each tile must test.
 
-    Geoms are skipped when their footprint misses the tile's wedge, lies beyond the
-    occlusion estimate, or (when more than the family's cap remain) is not among the
-    cap nearest ones; the bound `far` is then lowered below the nearest skipped one.
-    A ray whose hit is no farther than `far` (horizontally) has its true nearest hit.
-
-    Returns ({family: (indices [T, K_f], ok [T, K_f])}, far [T])."""
+    Returns ({family: (indices [T, K_f], ok [T, K_f])}, far [T], overflow)."""
     c = cam_pos[:2]
     right, left, half = _tile_wedges(dirs, spec.tile)
     far = _occlusion_estimate(geom, c, right, left, half)
-    bound = far
-    out = {}
+    out, overflow = {}, jnp.bool_(False)
     for f in FAMILIES:
         fam = geom.families[f]
         n = fam.count
         if n == 0:
             continue
-        dist = _footprint_distance(fam.fp, c)
-        mask = _in_wedge(fam.fp, c, right, left) & (dist[None, :] <= far[:, None] + _DIST_EPS) & fam.valid[None, :]
-        k = spec.cap(f)
-        if n <= k:
+        mask = (
+            _in_wedge(fam.fp, c, right, left)
+            & (_footprint_distance(fam.fp, c)[None, :] <= far[:, None] + _DIST_EPS)
+            & fam.valid[None, :]
+        )
+        if n <= spec.candidates:
             out[f] = (jnp.broadcast_to(jnp.arange(n), mask.shape), mask)
             continue
-        # The k nearest; the (k+1)-th nearest bounds the distance of every skipped one.
-        score = jnp.where(mask, -dist[None, :], -INF)
-        top, idx = jax.lax.top_k(score, k + 1)
-        out[f] = (idx[:, :k], top[:, :k] > -INF)
-        bound = jnp.where(top[:, k] > -INF, jnp.minimum(bound, -top[:, k] - 2.0 * _DIST_EPS), bound)
-    return out, bound
+        score = jnp.where(mask, (n - jnp.arange(n)).astype(jnp.float32), 0.0)
+        top, idx = jax.lax.top_k(score, spec.candidates)
+        out[f] = (idx, top > 0)
+        overflow = overflow | jnp.any(jnp.sum(mask, -1) > spec.candidates)
+    return out, far, overflow
 
 
 # ----------------------------------------------------------------------------------
@@ -372,13 +356,9 @@ def _trace(geom: Geometry, cam_pos, dirs, cands=None):
 def _pattern_factor(pattern, p):
     """Brightness factor of procedural surface patterns at world points p = (x, y, z)."""
     x, y, z = p
-    # a - 2 floor(a / 2) and u - floor(u): the same values as `% 2` and `% 1.0` here
-    # (exact for integer a and for u >= 0), without a scalar fmod call per pixel.
-    parity = lambda a: a - 2.0 * jnp.floor(a * 0.5)  # noqa: E731
-    checker = parity(jnp.floor(x * 2.0) + jnp.floor(y * 2.0))  # 0.5 m tiles
-    stripes = parity(jnp.floor((x + y) * 4.0))
-    u = z / 0.3
-    planks = u - jnp.floor(u) < 0.12
+    checker = (jnp.floor(x * 2.0) + jnp.floor(y * 2.0)) % 2  # 0.5 m tiles
+    stripes = jnp.floor((x + y) * 4.0) % 2
+    planks = (z / 0.3) % 1.0 < 0.12
     skirting = jnp.where(z < 0.1, 0.55, 1.0)
     f = jnp.ones_like(x)
     f = jnp.where(pattern == PATTERN_CHECKER, 0.8 + 0.2 * checker, f)
@@ -432,43 +412,18 @@ def _shade(geom: Geometry, cam_pos, dirs, t, gid):
     return (rgb * 255.0 + 0.5).astype(jnp.uint8), depth, cls
 
 
-def _culled_trace(geom: Geometry, cam_pos, tiled, dirs, spec: CameraSpec):
-    """Culled nearest hits of the rays tiled [T, R, 3] and which tiles failed the
-    check: (t, geom id) [T, R], bad [T]."""
-    cands, far = _tile_candidates(geom, cam_pos, dirs, spec)
-    t, gid = _trace(geom, cam_pos, tiled, cands)
-    # Geoms were skipped only beyond `far`: a ray whose hit is no farther than that
-    # (horizontally) has found its true nearest hit.
-    reach = t * jnp.sqrt(tiled[..., 0] ** 2 + tiled[..., 1] ** 2)
-    ok = (far[:, None] >= INF) | ((t < INF) & (reach <= far[:, None] + _DIST_EPS))
-    return t, gid, ~jnp.all(ok, -1)
-
-
-def _retrace_tiles(geom: Geometry, cam_pos, tiled, t, gid, bad):
-    """Re-trace the tiles flagged in bad [T] against every geom, one at a time."""
-
-    def cond(carry):
-        return jnp.any(carry[2])
-
-    def body(carry):
-        t, gid, bad = carry
-        k = jnp.argmax(bad)
-        tk, gk = _trace(geom, cam_pos, tiled[k][None])
-        return t.at[k].set(tk[0]), gid.at[k].set(gk[0]), bad.at[k].set(False)
-
-    t, gid, _ = jax.lax.while_loop(cond, body, (t, gid, bad))
-    return t, gid
-
-
-def _render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool, exact: bool = False) -> Frame:
+def _render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool) -> Frame:
     dirs = camera.column_ray_directions(yaw, tilt, spec.height, spec.width, spec.fovy)  # [W, H, 3]
     tile = spec.tile if culled else spec.width
     tiled = dirs.reshape(spec.width // tile, tile * spec.height, 3)
     if culled:
-        t, gid, bad = _culled_trace(geom, cam_pos, tiled, dirs, spec)
-        if exact:
-            t, gid = _retrace_tiles(geom, cam_pos, tiled, t, gid, bad)
-        fallback = jnp.any(bad)
+        cands, far, fallback = _tile_candidates(geom, cam_pos, dirs, spec)
+        t, gid = _trace(geom, cam_pos, tiled, cands)
+        # Geoms were skipped only beyond `far`: a ray whose hit is no farther than that
+        # (horizontally) has found its true nearest hit.
+        reach = t * jnp.sqrt(tiled[..., 0] ** 2 + tiled[..., 1] ** 2)
+        ok = (far[:, None] >= INF) | ((t < INF) & (reach <= far[:, None] + _DIST_EPS))
+        fallback = fallback | ~jnp.all(ok)
     else:
         t, gid = _trace(geom, cam_pos, tiled)
         fallback = jnp.bool_(False)
@@ -482,9 +437,9 @@ def _render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool, 
 def render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool = True) -> Frame:
     """Render one camera in one scene (unbatched Geometry); images [H, W].
 
-    With `culled`, `fallback` says whether some tiles failed culling's check, in which
-    case this frame is *not* exact: use `render_batch` (which re-renders those tiles),
-    or `culled=False`."""
+    With `culled`, `fallback` says whether culling had to be abandoned, in which case
+    this frame is *not* exact: use `render_batch` (which re-renders those frames), or
+    `culled=False`."""
     return _render(geom, cam_pos, yaw, tilt, spec, culled and spec.candidates > 0)
 
 
@@ -492,14 +447,33 @@ def render_batch(geometry: Geometry, scene, cam_pos, yaw, tilt, spec: CameraSpec
     """Render B cameras exactly. `geometry` is batched over scenes [S, ...], `scene` [B]
     picks each camera's scene; cam_pos [B, 3], yaw/tilt [B] radians. Images [B, H, W].
 
-    Frames are rendered `spec.chunk(B)` at a time. Tiles of culled frames that fail
-    their check are re-traced against every geom (`fallback` flags those frames)."""
-    culled = spec.candidates > 0
+    Culled frames that fail their check are re-rendered against every geom: up to
+    `spec.fallback_frames` of them on their own, more by re-rendering the batch (a
+    real branch; under an outer vmap it becomes a select that runs both sides)."""
+    geo = jax.tree_util.tree_map(lambda a: a[scene], geometry)
+    full = jax.vmap(lambda g, p, y, t: _render(g, p, y, t, spec, culled=False))
+    if spec.candidates <= 0:
+        return full(geo, cam_pos, yaw, tilt)
+    frames = jax.vmap(lambda g, p, y, t: _render(g, p, y, t, spec, culled=True))(geo, cam_pos, yaw, tilt)
+    bad = frames.fallback
+    b = bad.shape[0]
+    m = min(spec.fallback_frames or max(8, b // 8), b)
 
-    def one(args):
-        s, p, y, t = args
-        g = jax.tree_util.tree_map(lambda a: a[s], geometry)
-        return _render(g, p, y, t, spec, culled, exact=True)
+    def some(frames):
+        # Re-render the (at most m) failed frames and scatter them back.
+        idx = jnp.argsort(~bad, stable=True)[:m]
+        sub = jax.tree_util.tree_map(lambda a: a[idx], (geo, cam_pos, yaw, tilt))
+        redo = full(*sub)
+        keep = bad[idx]
+        merged = []
+        for a, r in zip(frames[:4], redo[:4]):
+            sel = keep.reshape((m,) + (1,) * (r.ndim - 1))
+            merged.append(a.at[idx].set(jnp.where(sel, r, a[idx])))
+        return Frame(*merged, bad)
 
-    b = cam_pos.shape[0]
-    return jax.lax.map(one, (scene, cam_pos, yaw, tilt), batch_size=spec.chunk(b))
+    def everything(frames):
+        return full(geo, cam_pos, yaw, tilt)._replace(fallback=bad)
+
+    n_bad = jnp.sum(bad)
+    branch = jnp.where(n_bad == 0, 0, jnp.where(n_bad <= m, 1, 2))
+    return jax.lax.switch(branch, [lambda f: f, some, everything], frames)
