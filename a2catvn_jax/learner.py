@@ -143,6 +143,26 @@ class Learner:
                   done=jnp.zeros((L - 1, B), bool))
         return ex
 
+    def shard(self, ts: TrainState, mesh, axis: str = "batch") -> TrainState:
+        """`ts` placed on `mesh` with its environment axis split over the mesh axis `axis`
+        (environment and agent state, the replay buffer's environment axis) and everything
+        else replicated. `update` keeps that layout: each device steps, renders and runs the
+        network for its share of the environments, and gradients are reduced across them."""
+        from jax.sharding import NamedSharding, PartitionSpec
+
+        tm = jax.tree_util.tree_map
+        replicated = NamedSharding(mesh, PartitionSpec())
+
+        def along(dim):
+            return lambda _: NamedSharding(mesh, PartitionSpec(*([None] * dim), axis))
+
+        replay = None
+        if ts.replay is not None:
+            replay = replay_lib.Replay(tm(along(2), ts.replay.data), tm(along(1), ts.replay.carry), replicated)
+        spec = TrainState(tm(lambda _: replicated, ts.params), tm(lambda _: replicated, ts.opt_state),
+                          tm(along(0), ts.env_state), tm(along(0), ts.agent), replay, replicated, replicated)
+        return jax.device_put(ts, spec)
+
     def frames(self, ts: TrainState):
         return ts.update * self.frames_per_update
 
