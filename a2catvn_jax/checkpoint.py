@@ -14,6 +14,7 @@ written under a different configuration (the differing keys are listed).
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -121,9 +122,13 @@ class Checkpointer:
                     + "\nResume with the run's own configuration (omit --config/--set) or start a new work directory."
                 )
         abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
+        previous_hook = sys.unraisablehook
+        sys.unraisablehook = _quiet_abandoned_reads(previous_hook)
         try:
             restored = self.manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))
+            sys.unraisablehook = previous_hook
         except Exception as e:  # noqa: BLE001
+            # The hook stays: reads abandoned by the failed restore may still finish later.
             raise CheckpointError(
                 f"{path}: the checkpoint is corrupt or does not match this configuration "
                 f"({type(e).__name__}: {_short(str(e))})"
@@ -138,6 +143,19 @@ class Checkpointer:
 
     def close(self):
         self.manager.close()
+
+
+def _quiet_abandoned_reads(previous):
+    """An unraisable-exception hook that drops the 'Event loop is closed' errors of array
+    reads that a failed orbax restore left running, and passes everything else on."""
+
+    def hook(unraisable):
+        exc = unraisable.exc_value
+        if isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed":
+            return
+        previous(unraisable)
+
+    return hook
 
 
 def _short(message: str, limit: int = 300) -> str:
