@@ -11,9 +11,9 @@ OpenGL renderer (`mujoco.Renderer`, RGB + depth + segmentation passes) at the sa
 agent poses, and the ratio of the two.
 
 `train`: frames/s of `Learner.update` (rollout, replay, every loss, optimiser step)
-for the quickstart configuration and a paper-sized one (Table I: 16 environments,
-20-step rollouts, every auxiliary task, 4 houses of 2x2 rooms; `--paper-resolution`
-pixels), with compile time and the share of the time spent in the environment (a
+for `configs/quickstart.yaml` and `configs/paper.yaml` (Table I: 16 environments,
+20-step rollouts, every auxiliary task, 4 houses of 2x2 rooms) at `--paper-resolution`
+pixels, with compile time and the share of the time spent in the environment (a
 rollout of random actions timed alone).
 
 `network`: forward+backward frames/s of the conv base with the depth and segmentation
@@ -93,18 +93,6 @@ def bench_mujoco_gl(env, resolution: int, poses: np.ndarray, frames: int) -> flo
     )
 
 
-PAPER = [
-    "env.num_envs=16",
-    "env.scene.kind=house",
-    "env.scene.grid=[2,2]",
-    "env.scene.num_scenes=4",
-    "env.goals_per_scene=4",
-    "env.max_episode_steps=900",
-    "train.rollout_length=20",
-    "train.replay_size=2000",
-]
-
-
 def _timed_updates(learner, updates: int):
     """(compile seconds, frames/s) of `learner.update`."""
     t0 = time.perf_counter()
@@ -142,7 +130,7 @@ def bench_train(name: str, overrides, updates: int) -> dict:
     from a2catvn_jax.learner import Learner
     from a2catvn_jax.train import DEFAULT_CONFIG
 
-    cfg = load_config(DEFAULT_CONFIG if name == "quickstart" else None, overrides)
+    cfg = load_config(DEFAULT_CONFIG if name == "quickstart" else DEFAULT_CONFIG.with_name("paper.yaml"), overrides)
     learner = Learner(cfg)
     compile_s, fps = _timed_updates(learner, updates)
     env_fps = _env_rollout_fps(learner.env, learner.T, max(2, updates))
@@ -224,7 +212,7 @@ def main(argv=None) -> None:
         rows = []
         print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'env fps':>9} {'env share':>10}")
         for name in args.configs:
-            extra = PAPER + [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
+            extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
             r = bench_train(name, extra + list(args.overrides), args.updates)
             rows.append(r)
             print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "

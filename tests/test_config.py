@@ -387,3 +387,19 @@ def test_env_config_defaults_are_valid():
     SceneConfig().validate("env.scene")
     RenderConfig().validate("env.render")
     Config().validate()
+
+
+def test_paper_config_has_table_one():
+    """configs/paper.yaml carries every value of the paper's Table I."""
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "paper.yaml")
+    t, w = cfg.train, cfg.train.loss_weights
+    assert (t.gamma, cfg.env.max_episode_steps, t.rollout_length, t.total_frames, cfg.env.num_envs, t.replay_size) == (
+        0.99, 900, 20, 40_000_000, 16, 2000)
+    assert (t.rmsprop_decay, t.rmsprop_eps, t.learning_rate, t.lr_schedule, t.max_grad_norm) == (
+        0.99, 1e-5, 7e-4, "linear", 0.5)
+    assert (w.entropy, w.actor, w.critic, w.off_policy_critic, w.pixel_control, w.reward_prediction) == (
+        0.001, 1.0, 0.5, 1.0, 0.05, 1.0)
+    assert (w.depth, w.segmentation, w.target_segmentation) == (0.1, 0.1, 0.1)
+    assert (t.pixel_control_gamma, t.pixel_control_cell, t.aux_downsize) == (0.9, 4, 4)
+    assert t.curriculum and t.curriculum_complexity == (0.3, 1.0) and t.curriculum_frames == (5_000_000, 10_000_000)
+    assert cfg.env.render.image_size == 174
