@@ -14,10 +14,13 @@ Speed comes from two things:
   footprint misses the wedge cannot be hit by them. In a closed scene (floor and
   ceiling everywhere, walls from floor to ceiling) the nearest floor-to-ceiling box
   along the wedge's edges also bounds how far the tile's rays travel horizontally;
-  geoms beyond that are skipped too. Each tile tests at most `candidates` members
-  per family. The result is then verified: every ray's hit must lie within the
-  distance bound. Frames where a tile had too many candidates or a ray failed the
-  check are re-rendered against all geoms, so the output never depends on culling.
+  geoms beyond that are skipped too. Each tile tests at most a few members per
+  family, the nearest ones; when more remain, the bound is lowered below the
+  nearest one skipped. The result is then verified: every ray's hit must lie within
+  its tile's bound. Tiles where a ray fails the check are re-traced against all
+  geoms, so the output never depends on culling.
+- Chunks. `render_batch` renders a few frames at a time (a loop over chunks) rather
+  than the whole batch at once, so that each pass over the images stays in cache.
 """
 
 from __future__ import annotations
@@ -50,35 +53,45 @@ _LIGHT = np.array([0.4, 0.6, 1.0], np.float32) / np.linalg.norm([0.4, 0.6, 1.0])
 class CameraSpec:
     """Static camera and renderer settings (they fix array shapes).
 
-    candidates: per tile and geom family, how many geoms the culled renderer tests;
-      0 disables culling (every ray tests every geom).
+    candidates: per tile, how many world-aligned boxes (walls, floors, most furniture)
+      the culled renderer tests; 0 disables culling (every ray tests every geom).
+    object_candidates: the same for each other geom family (oriented boxes,
+      ellipsoids, capsules), capped by `candidates`.
     tile_columns: image columns per culling tile (reduced to a divisor of `width`).
-    fallback_frames: how many frames of a batch may be re-rendered without culling
-      before the whole batch is (keeps the rare failures of culling cheap); 0 means
-      the larger of 8 and an eighth of the batch.
+    chunk_frames: `render_batch` renders its frames this many at a time (a loop over
+      chunks keeps each chunk's images in cache); 0 picks about 2**18 pixels a chunk, at most 16 frames.
     """
 
     height: int
     width: int
     fovy: float = 60.0
     candidates: int = 24
-    tile_columns: int = 4
-    fallback_frames: int = 0
+    object_candidates: int = 2
+    tile_columns: int = 6
+    chunk_frames: int = 0
 
     def __post_init__(self):
         if self.height < 1 or self.width < 1:
             raise ValueError(f"image size must be positive, got {self.height}x{self.width}")
         if not 0.0 < self.fovy < 180.0:
             raise ValueError(f"fovy must be in (0, 180) degrees, got {self.fovy}")
-        if self.candidates < 0 or self.tile_columns < 1 or self.fallback_frames < 0:
+        if min(self.candidates, self.object_candidates, self.chunk_frames) < 0 or self.tile_columns < 1:
             raise ValueError(
-                "candidates and fallback_frames must be >= 0 and tile_columns >= 1, got "
-                f"{self.candidates}, {self.tile_columns}, {self.fallback_frames}"
+                "candidates, object_candidates and chunk_frames must be >= 0 and tile_columns >= 1, got "
+                f"{self.candidates}, {self.object_candidates}, {self.chunk_frames}, {self.tile_columns}"
             )
 
     @property
     def tile(self) -> int:
         return max(c for c in range(1, min(self.tile_columns, self.width) + 1) if self.width % c == 0)
+
+    def cap(self, family: str) -> int:
+        """Candidates per tile of a geom family."""
+        return self.candidates if family == "abox" else min(self.candidates, max(self.object_candidates, 1))
+
+    def chunk(self, batch: int) -> int:
+        n = self.chunk_frames or min(16, max(1, round(2**18 / (self.height * self.width))))
+        return max(1, min(n, batch))
 
 
 class Frame(NamedTuple):
@@ -88,7 +101,8 @@ class Frame(NamedTuple):
     depth: jnp.ndarray  # float32 metres along the ray, 0 where nothing is hit
     geom: jnp.ndarray  # int32 MuJoCo geom id, -1 where nothing is hit
     cls: jnp.ndarray  # int32 semantic class, 0 where nothing is hit
-    fallback: jnp.ndarray  # bool [...]: culling could not be trusted, rendered in full
+    fallback: jnp.ndarray  # bool [...]: some tiles failed culling's check (render_batch
+    # re-rendered those against every geom; `render` with culling leaves them wrong)
 
 
 # ----------------------------------------------------------------------------------
@@ -269,31 +283,36 @@ def _occlusion_estimate(geom: Geometry, c, right, left, half_angle):
 
 
 def _tile_candidates(geom: Geometry, cam_pos, dirs, spec: CameraSpec):
-    """Per family, the geoms each tile must test.
+    """Per family, the geoms each tile must test, and the distance bound of each tile.
 
-    Returns ({family: (indices [T, K_f], ok [T, K_f])}, far [T], overflow)."""
+    Geoms are skipped when their footprint misses the tile's wedge, lies beyond the
+    occlusion estimate, or (when more than the family's cap remain) is not among the
+    cap nearest ones; the bound `far` is then lowered below the nearest skipped one.
+    A ray whose hit is no farther than `far` (horizontally) has its true nearest hit.
+
+    Returns ({family: (indices [T, K_f], ok [T, K_f])}, far [T])."""
     c = cam_pos[:2]
     right, left, half = _tile_wedges(dirs, spec.tile)
     far = _occlusion_estimate(geom, c, right, left, half)
-    out, overflow = {}, jnp.bool_(False)
+    bound = far
+    out = {}
     for f in FAMILIES:
         fam = geom.families[f]
         n = fam.count
         if n == 0:
             continue
-        mask = (
-            _in_wedge(fam.fp, c, right, left)
-            & (_footprint_distance(fam.fp, c)[None, :] <= far[:, None] + _DIST_EPS)
-            & fam.valid[None, :]
-        )
-        if n <= spec.candidates:
+        dist = _footprint_distance(fam.fp, c)
+        mask = _in_wedge(fam.fp, c, right, left) & (dist[None, :] <= far[:, None] + _DIST_EPS) & fam.valid[None, :]
+        k = spec.cap(f)
+        if n <= k:
             out[f] = (jnp.broadcast_to(jnp.arange(n), mask.shape), mask)
             continue
-        score = jnp.where(mask, (n - jnp.arange(n)).astype(jnp.float32), 0.0)
-        top, idx = jax.lax.top_k(score, spec.candidates)
-        out[f] = (idx, top > 0)
-        overflow = overflow | jnp.any(jnp.sum(mask, -1) > spec.candidates)
-    return out, far, overflow
+        # The k nearest; the (k+1)-th nearest bounds the distance of every skipped one.
+        score = jnp.where(mask, -dist[None, :], -INF)
+        top, idx = jax.lax.top_k(score, k + 1)
+        out[f] = (idx[:, :k], top[:, :k] > -INF)
+        bound = jnp.where(top[:, k] > -INF, jnp.minimum(bound, -top[:, k] - 2.0 * _DIST_EPS), bound)
+    return out, bound
 
 
 # ----------------------------------------------------------------------------------
@@ -412,18 +431,43 @@ def _shade(geom: Geometry, cam_pos, dirs, t, gid):
     return (rgb * 255.0 + 0.5).astype(jnp.uint8), depth, cls
 
 
-def _render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool) -> Frame:
+def _culled_trace(geom: Geometry, cam_pos, tiled, dirs, spec: CameraSpec):
+    """Culled nearest hits of the rays tiled [T, R, 3] and which tiles failed the
+    check: (t, geom id) [T, R], bad [T]."""
+    cands, far = _tile_candidates(geom, cam_pos, dirs, spec)
+    t, gid = _trace(geom, cam_pos, tiled, cands)
+    # Geoms were skipped only beyond `far`: a ray whose hit is no farther than that
+    # (horizontally) has found its true nearest hit.
+    reach = t * jnp.sqrt(tiled[..., 0] ** 2 + tiled[..., 1] ** 2)
+    ok = (far[:, None] >= INF) | ((t < INF) & (reach <= far[:, None] + _DIST_EPS))
+    return t, gid, ~jnp.all(ok, -1)
+
+
+def _retrace_tiles(geom: Geometry, cam_pos, tiled, t, gid, bad):
+    """Re-trace the tiles flagged in bad [T] against every geom, one at a time."""
+
+    def cond(carry):
+        return jnp.any(carry[2])
+
+    def body(carry):
+        t, gid, bad = carry
+        k = jnp.argmax(bad)
+        tk, gk = _trace(geom, cam_pos, tiled[k][None])
+        return t.at[k].set(tk[0]), gid.at[k].set(gk[0]), bad.at[k].set(False)
+
+    t, gid, _ = jax.lax.while_loop(cond, body, (t, gid, bad))
+    return t, gid
+
+
+def _render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool, exact: bool = False) -> Frame:
     dirs = camera.column_ray_directions(yaw, tilt, spec.height, spec.width, spec.fovy)  # [W, H, 3]
     tile = spec.tile if culled else spec.width
     tiled = dirs.reshape(spec.width // tile, tile * spec.height, 3)
     if culled:
-        cands, far, fallback = _tile_candidates(geom, cam_pos, dirs, spec)
-        t, gid = _trace(geom, cam_pos, tiled, cands)
-        # Geoms were skipped only beyond `far`: a ray whose hit is no farther than that
-        # (horizontally) has found its true nearest hit.
-        reach = t * jnp.sqrt(tiled[..., 0] ** 2 + tiled[..., 1] ** 2)
-        ok = (far[:, None] >= INF) | ((t < INF) & (reach <= far[:, None] + _DIST_EPS))
-        fallback = fallback | ~jnp.all(ok)
+        t, gid, bad = _culled_trace(geom, cam_pos, tiled, dirs, spec)
+        if exact:
+            t, gid = _retrace_tiles(geom, cam_pos, tiled, t, gid, bad)
+        fallback = jnp.any(bad)
     else:
         t, gid = _trace(geom, cam_pos, tiled)
         fallback = jnp.bool_(False)
@@ -437,9 +481,9 @@ def _render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool) 
 def render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool = True) -> Frame:
     """Render one camera in one scene (unbatched Geometry); images [H, W].
 
-    With `culled`, `fallback` says whether culling had to be abandoned, in which case
-    this frame is *not* exact: use `render_batch` (which re-renders those frames), or
-    `culled=False`."""
+    With `culled`, `fallback` says whether some tiles failed culling's check, in which
+    case this frame is *not* exact: use `render_batch` (which re-renders those tiles),
+    or `culled=False`."""
     return _render(geom, cam_pos, yaw, tilt, spec, culled and spec.candidates > 0)
 
 
@@ -447,33 +491,14 @@ def render_batch(geometry: Geometry, scene, cam_pos, yaw, tilt, spec: CameraSpec
     """Render B cameras exactly. `geometry` is batched over scenes [S, ...], `scene` [B]
     picks each camera's scene; cam_pos [B, 3], yaw/tilt [B] radians. Images [B, H, W].
 
-    Culled frames that fail their check are re-rendered against every geom: up to
-    `spec.fallback_frames` of them on their own, more by re-rendering the batch (a
-    real branch; under an outer vmap it becomes a select that runs both sides)."""
-    geo = jax.tree_util.tree_map(lambda a: a[scene], geometry)
-    full = jax.vmap(lambda g, p, y, t: _render(g, p, y, t, spec, culled=False))
-    if spec.candidates <= 0:
-        return full(geo, cam_pos, yaw, tilt)
-    frames = jax.vmap(lambda g, p, y, t: _render(g, p, y, t, spec, culled=True))(geo, cam_pos, yaw, tilt)
-    bad = frames.fallback
-    b = bad.shape[0]
-    m = min(spec.fallback_frames or max(8, b // 8), b)
+    Frames are rendered `spec.chunk(B)` at a time. Tiles of culled frames that fail
+    their check are re-traced against every geom (`fallback` flags those frames)."""
+    culled = spec.candidates > 0
 
-    def some(frames):
-        # Re-render the (at most m) failed frames and scatter them back.
-        idx = jnp.argsort(~bad, stable=True)[:m]
-        sub = jax.tree_util.tree_map(lambda a: a[idx], (geo, cam_pos, yaw, tilt))
-        redo = full(*sub)
-        keep = bad[idx]
-        merged = []
-        for a, r in zip(frames[:4], redo[:4]):
-            sel = keep.reshape((m,) + (1,) * (r.ndim - 1))
-            merged.append(a.at[idx].set(jnp.where(sel, r, a[idx])))
-        return Frame(*merged, bad)
+    def one(args):
+        s, p, y, t = args
+        g = jax.tree_util.tree_map(lambda a: a[s], geometry)
+        return _render(g, p, y, t, spec, culled, exact=True)
 
-    def everything(frames):
-        return full(geo, cam_pos, yaw, tilt)._replace(fallback=bad)
-
-    n_bad = jnp.sum(bad)
-    branch = jnp.where(n_bad == 0, 0, jnp.where(n_bad <= m, 1, 2))
-    return jax.lax.switch(branch, [lambda f: f, some, everything], frames)
+    b = cam_pos.shape[0]
+    return jax.lax.map(one, (scene, cam_pos, yaw, tilt), batch_size=spec.chunk(b))

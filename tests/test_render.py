@@ -34,7 +34,7 @@ from a2catvn_jax.scenes import (
 )
 
 H, W, FOVY = 24, 32, 60.0  # non-square: exercises the horizontal field of view
-SPEC = CameraSpec(H, W, FOVY, fallback_frames=8)
+SPEC = CameraSpec(H, W, FOVY, tile_columns=4)
 CAM_Z = 1.0
 POSES_PER_SCENE = 8
 TOL = 1e-3  # metres
@@ -252,8 +252,8 @@ def primitives() -> Batch:
         yaw.append(np.arctan2(to[1], to[0]) + rng.uniform(-0.4, 0.4))
         tilt.append(rng.uniform(-0.5, 0.5))
     # Few candidates per tile: culling (top-k included) runs for every family, and
-    # frames whose tiles overflow fall back to brute force.
-    spec = CameraSpec(H, W, FOVY, candidates=2, fallback_frames=num)
+    # tiles whose candidates overflow get a tighter bound, often failing its check.
+    spec = CameraSpec(H, W, FOVY, candidates=2, chunk_frames=5)
     return _make_batch([model], [False], [2.4], spec, np.zeros(num), pos, yaw, tilt)
 
 
@@ -372,19 +372,19 @@ def test_culling_changes_nothing(generated, frames):
     assert not reference.fallback.any()
     runs = {
         "candidates=24": frames("generated", "exact"),
-        # Too few candidates: most frames fail their check, more than fallback_frames,
-        # so the whole batch is re-rendered.
-        "candidates=4, fallback_frames=1": _numpy(
-            _exact_renderer(dataclasses.replace(SPEC, candidates=4, fallback_frames=1))(*b.args())
+        # Too few candidates: most frames have tiles that fail their check and are
+        # re-traced; chunks of 3 frames leave a remainder chunk.
+        "candidates=4, chunks of 3": _numpy(
+            _exact_renderer(dataclasses.replace(SPEC, candidates=4, chunk_frames=3))(*b.args())
         ),
     }
-    # With 24 candidates a few frames fail (the slit frame always: see _slit_scene) and
-    # are re-rendered on their own, scattered back among frames that were fine.
+    # With 24 candidates a few frames have failing tiles (the slit frame always: see
+    # _slit_scene), re-traced among frames that were fine.
     some = runs["candidates=24"].fallback
     assert some[b.slit]
-    assert 1 <= some.sum() < SPEC.fallback_frames, "the 'some frames' branch is not exercised"
-    many = runs["candidates=4, fallback_frames=1"].fallback
-    assert many.sum() >= 2, "candidates=4 should make several frames fall back"
+    assert 1 <= some.sum() < len(some) // 2
+    many = runs["candidates=4, chunks of 3"].fallback
+    assert many.sum() > some.sum(), "candidates=4 should make more frames fall back"
     assert np.all(many >= some)
     for label, f in runs.items():
         np.testing.assert_array_equal(f.geom, reference.geom, err_msg=label)
