@@ -5,7 +5,7 @@ ellipsoids) and capsules: the same geometry MuJoCo's `mj_ray` sees. Depth is the
 distance along the unit pixel ray to the first surface, `geom` the MuJoCo id of the
 geom hit. Images are computed column-major ([W, H]) and returned row-major.
 
-Speed comes from two things:
+Speed comes from three things:
 - Fused loops. Each geom family is intersected in a real XLA while loop over its
   members, written per vector component, so one member's whole test is a single
   elementwise pass over the image that keeps the running nearest hit.
