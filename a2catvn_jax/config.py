@@ -54,6 +54,7 @@ __all__ = [
     "AgentConfig",
     "LossWeights",
     "TrainConfig",
+    "PretrainConfig",
     "Config",
     "from_dict",
     "to_dict",
@@ -310,6 +311,23 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
+class PretrainConfig:
+    """Supervised pre-training of the conv base with the depth / segmentation heads (paper, Table I)."""
+
+    dataset_size: int = 200_000  # observations at random poses in the training scenes
+    epochs: int = 30
+    batch_size: int = 64
+    learning_rate: float = 1e-3  # Adam
+
+    def validate(self, path: str = "") -> None:
+        k = functools.partial(_join, path)
+        for name in ("dataset_size", "epochs", "batch_size"):
+            v = getattr(self, name)
+            _check(v >= 1, k(name), f"must be >= 1, got {v}")
+        _check(self.learning_rate > 0, k("learning_rate"), f"must be > 0, got {self.learning_rate}")
+
+
+@dataclass(frozen=True)
 class Config:
     """Root of the configuration tree."""
 
@@ -317,6 +335,7 @@ class Config:
     env: EnvConfig = field(default_factory=EnvConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    pretrain: PretrainConfig = field(default_factory=PretrainConfig)
 
     def validate(self, path: str = "") -> None:
         _check(0 <= self.seed < 2**31, _join(path, "seed"), f"must be in [0, 2**31), got {self.seed}")

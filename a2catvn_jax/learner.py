@@ -111,11 +111,15 @@ class Learner:
 
     # -- state ----------------------------------------------------------------------------
 
-    def _init(self, key) -> TrainState:
-        k_param, k_env, k_train = jax.random.split(key, 3)
+    def init_params(self, key):
+        """Freshly initialised network parameters."""
         size = self.cfg.env.render.image_size
         img = jnp.zeros((1, size, size, 3), jnp.uint8)
-        params = self.net.init(k_param, img, img, jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
+        return self.net.init(key, img, img, jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
+
+    def _init(self, key) -> TrainState:
+        k_param, k_env, k_train = jax.random.split(key, 3)
+        params = self.init_params(k_param)
         env_state = self.env.reset(k_env, complexity=self.complexity(0))
         replay = None
         if self.uses_replay:
@@ -223,13 +227,14 @@ class Learner:
             return losses.downsize_pick(seg, f).astype(jnp.int32)
         return losses.downsize_mean(self._colors[seg], f)
 
-    def _frame_targets(self, env_state) -> dict:
-        """Depth and segmentation ground truth of the current frames, for the losses that are on."""
+    def frame_targets(self, obs: dict) -> dict:
+        """Depth and segmentation ground truth at auxiliary resolution of frames
+        (obs["depth"], obs["segmentation"] [N, H, W]), for the losses that are on."""
         out = {}
         if self.weights.depth > 0:
-            out["depth_gt"] = losses.downsize_mean(env_state.obs["depth"], self.cfg.train.aux_downsize) * DEPTH_SCALE
+            out["depth_gt"] = losses.downsize_mean(obs["depth"], self.cfg.train.aux_downsize) * DEPTH_SCALE
         if self.weights.segmentation > 0:
-            out["seg_gt"] = self._seg_targets(env_state.obs["segmentation"])
+            out["seg_gt"] = self._seg_targets(obs["segmentation"])
         return out
 
     def _rollout(self, params, env_state, agent: AgentState, key):
@@ -240,7 +245,7 @@ class Learner:
             env_state, agent = carry
             inputs = self.inputs(env_state, agent)
             core, action, _, _ = self.act(params, target_feats, agent, env_state, k)
-            record = dict(inputs, **self._frame_targets(env_state))
+            record = dict(inputs, **self.frame_targets(env_state.obs))
             env_state = self.env.step(env_state, action)
             m = env_state.metrics
             done = env_state.done
@@ -255,7 +260,7 @@ class Learner:
             return (env_state, self.observe(core, action, env_state)), (record, step_rec, stats)
 
         (env_state, agent_out), (recs, steps, stats) = jax.lax.scan(step, (env_state, agent), jax.random.split(key, self.T))
-        last = dict(self.inputs(env_state, agent_out), **self._frame_targets(env_state))
+        last = dict(self.inputs(env_state, agent_out), **self.frame_targets(env_state.obs))
         traj = jax.tree_util.tree_map(lambda seq, x: jnp.concatenate([seq, x[None]]), recs, last)
         traj.update(steps)
         stats = {k: v.sum() for k, v in stats.items()}
@@ -295,20 +300,30 @@ class Learner:
         returns = losses.bootstrapped_returns(traj["reward"], traj["done"], jax.lax.stop_gradient(values[-1]), tc.gamma)
         actor, critic, neg_entropy = losses.actor_critic_losses(logits[:-1], values[:-1], traj["action"], returns)
         terms = {"actor": actor, "critic": critic, "entropy": neg_entropy}
-        seg_loss = losses.cross_entropy if self.cfg.agent.segmentation_loss == "cross_entropy" else losses.mse
-        heads = tuple(h for h in networks.VN_HEADS if getattr(w, h) > 0)
-        if heads:
-            pred = self._apply_flat(params, functools.partial(Net.vn_heads, heads=heads), conv4)
-            if "depth" in pred:
-                terms["depth"] = losses.mse(pred["depth"], traj["depth_gt"])
-            if "segmentation" in pred:
-                terms["segmentation"] = seg_loss(pred["segmentation"], traj["seg_gt"])
-            if "target_segmentation" in pred:
-                terms["target_segmentation"] = seg_loss(pred["target_segmentation"], self.target_seg_gt[traj["target"]])
+        terms.update(self.vn_losses(params, conv4, traj, traj["target"]))
         if replay is not None:
             terms.update(self._replay_losses(params, target_feats, replay, key))
         total = sum(getattr(w, name) * value for name, value in terms.items())
         return total, terms
+
+    def vn_losses(self, params, conv4, truth: dict, target_index) -> dict:
+        """Depth, observation and target segmentation losses (those with a non-zero weight)
+        of conv4 maps [..., g, g, c4] against `truth` ("depth_gt", "seg_gt") and the
+        ground truth of the targets `target_index` [...]."""
+        heads = tuple(h for h in networks.VN_HEADS if getattr(self.weights, h) > 0)
+        if not heads:
+            return {}
+        seg_loss = losses.cross_entropy if self.cfg.agent.segmentation_loss == "cross_entropy" else losses.mse
+        method = functools.partial(networks.A2CATNet.vn_heads, heads=heads)
+        pred = self._apply_flat(params, method, conv4, conv4.ndim - 3)
+        terms = {}
+        if "depth" in pred:
+            terms["depth"] = losses.mse(pred["depth"], truth["depth_gt"])
+        if "segmentation" in pred:
+            terms["segmentation"] = seg_loss(pred["segmentation"], truth["seg_gt"])
+        if "target_segmentation" in pred:
+            terms["target_segmentation"] = seg_loss(pred["target_segmentation"], self.target_seg_gt[target_index])
+        return terms
 
     def _replay_losses(self, params, target_feats, replay: replay_lib.Replay, key) -> dict:
         tc, w = self.cfg.train, self.weights

@@ -48,13 +48,13 @@ class Interval:
 
 
 class MetricsWriter:
-    """Appends metric rows to metrics.jsonl, metrics.csv and TensorBoard in `workdir`."""
+    """Appends metric rows to <name>.jsonl, <name>.csv and TensorBoard in `workdir`."""
 
-    def __init__(self, workdir: str | os.PathLike, tensorboard: bool = True):
+    def __init__(self, workdir: str | os.PathLike, tensorboard: bool = True, name: str = "metrics"):
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
-        self.jsonl = open(self.workdir / "metrics.jsonl", "a", encoding="utf-8")
-        self.csv_path = self.workdir / "metrics.csv"
+        self.jsonl = open(self.workdir / f"{name}.jsonl", "a", encoding="utf-8")
+        self.csv_path = self.workdir / f"{name}.csv"
         self._csv_fields = None
         if self.csv_path.exists() and self.csv_path.stat().st_size:
             with open(self.csv_path, encoding="utf-8") as fh:

@@ -1,7 +1,7 @@
 """Train an A2CAT-VN agent.
 
     python -m a2catvn_jax.train [--config configs/NAME.yaml] [--workdir DIR] [--set KEY=VALUE ...]
-        [--resume] [--updates N]
+        [--resume] [--updates N] [--init-from PRETRAIN_DIR]
 
 With no arguments it trains the quickstart configuration (`configs/quickstart.yaml`)
 in `runs/quickstart`. The work directory receives `config.yaml`, orbax checkpoints
@@ -47,11 +47,12 @@ class _StopFlag:
         print("\nstopping after this update (Ctrl-C again to abort without a checkpoint)", file=sys.stderr)
 
 
-def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: bool = True, log=None):
+def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: bool = True, log=None, init_from=None):
     """Train `cfg` in `workdir`; returns (learner, final train state, last log row).
 
     `max_updates` bounds the updates of this call (default: up to train.total_frames);
-    `log` receives the text lines (default: print).
+    `log` receives the text lines (default: print). `init_from` is a pre-training work
+    directory (`python -m a2catvn_jax.pretrain`) whose matching parameters a new run starts from.
     """
     log = log or functools.partial(print, flush=True)
     import jax
@@ -78,6 +79,13 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         log(f"resumed from update {meta['update']} ({meta['frames']:,} frames)")
     else:
         state = learner.init(key)
+        if init_from is not None:
+            from a2catvn_jax.pretrain import load_matching
+
+            params, loaded, kept = load_matching(state.params, init_from)
+            state = state.replace(params=params, opt_state=learner.optimizer.init(params))
+            log(f"initialised from {init_from}: {len(loaded)} arrays of {_modules(loaded)}; "
+                f"{len(kept)} arrays keep their initial values ({_modules(kept)})")
         ckpt.save(state, cfg, 0)
     start = int(state.update)
     end = learner.total_updates if max_updates is None else min(learner.total_updates, start + max_updates)
@@ -139,6 +147,12 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     return learner, state, row
 
 
+def _modules(paths) -> str:
+    """The layer names of parameter paths like "['params']['conv1']['kernel']"."""
+    names = [p.split("']['")[1] if "']['" in p else p for p in paths]
+    return ", ".join(dict.fromkeys(names)) or "none"
+
+
 def _fmt(x, spec=".2f"):
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
 
@@ -150,12 +164,17 @@ def main(argv=None) -> None:
     parser.add_argument("--resume", action="store_true", help="continue the run in --workdir from its latest checkpoint")
     parser.add_argument("--updates", type=int, default=None, help="stop after this many updates (default: to train.total_frames)")
     parser.add_argument("--no-progress", action="store_true", help="log lines instead of a progress bar")
+    parser.add_argument("--init-from", metavar="DIR", default=None,
+                        help="start a new run from the matching parameters of a pre-training work directory")
     args = parser.parse_args(argv)
     workdir = Path(args.workdir or DEFAULT_WORKDIR)
     if args.updates is not None and args.updates < 1:
         parser.error(f"--updates must be >= 1, got {args.updates}")
+    if args.init_from and args.resume:
+        parser.error("--init-from starts a new run; it cannot be combined with --resume")
 
     from a2catvn_jax.checkpoint import CHECKPOINT_DIR, CheckpointError, read_run_config
+    from a2catvn_jax.pretrain import PretrainError
 
     try:
         if args.resume:
@@ -183,8 +202,9 @@ def main(argv=None) -> None:
         parser.exit(2, f"error: {e}\n")
 
     try:
-        train(cfg, workdir, resume=args.resume, max_updates=args.updates, progress=not args.no_progress)
-    except (CheckpointError, TrainingError) as e:
+        train(cfg, workdir, resume=args.resume, max_updates=args.updates, progress=not args.no_progress,
+              init_from=args.init_from)
+    except (CheckpointError, TrainingError, PretrainError) as e:
         parser.exit(1, f"error: {e}\n")
 
 
