@@ -21,11 +21,9 @@ from a2catvn_jax.evaluate import HELD_OUT_OFFSET, default_output, evaluate, main
 from a2catvn_jax.scenes import mjcf
 from a2catvn_jax.train import train
 from a2catvn_jax.world import make_scenes
+from tiny import TINY_LEARNER
 
-TINY = ["env.num_envs=4", "env.render.image_size=16", "env.render.culling=false", "env.scene.num_scenes=1",
-        "env.scene.kind=room", "env.goals_per_scene=2", "env.max_episode_steps=20", "train.rollout_length=4",
-        "train.replay_size=8", "train.replay_batch=2", "agent.conv_channels=[4,8,8,8]", "agent.dense_size=16",
-        "agent.core_size=16", "train.log_every=1"]
+TINY = TINY_LEARNER + ["env.scene.num_scenes=1", "env.scene.kind=room", "env.max_episode_steps=20", "train.log_every=1"]
 EPISODES = 6
 FIELDS = ("step", "frames", "episodes", "success_rate", "spl", "episode_length", "episode_return", "houses", "policy",
           "per_episode")

@@ -30,21 +30,9 @@ from a2catvn_jax.learner import REPLAY_FIELDS, Learner
 from a2catvn_jax.networks import A2CATNet
 from a2catvn_jax.scenes.spec import NUM_CLASSES
 from a2catvn_jax.world import SEGMENTATION_COLORS
+from tiny import TINY_LEARNER
 
-TINY = [
-    "env.num_envs=4",
-    "env.render.image_size=16",
-    "env.render.culling=false",
-    "env.scene.num_scenes=1",
-    "env.scene.grid=[1,1]",
-    "env.goals_per_scene=2",
-    "train.rollout_length=4",
-    "train.replay_size=8",
-    "train.replay_batch=2",
-    "agent.conv_channels=[4,8,8,8]",
-    "agent.dense_size=16",
-    "agent.core_size=16",
-]
+TINY = TINY_LEARNER + ["env.scene.num_scenes=1", "env.scene.grid=[1,1]"]
 NO_REPLAY = ["train.loss_weights.pixel_control=0", "train.loss_weights.reward_prediction=0",
              "train.loss_weights.off_policy_critic=0"]
 

@@ -12,20 +12,11 @@ from a2catvn_jax.learner import Learner
 from a2catvn_jax.logger import read_jsonl
 from a2catvn_jax.pretrain import PRETRAINED_DIR, PretrainError, load_matching, make_dataset, pretrain
 from a2catvn_jax.train import train
+from tiny import TINY_LEARNER
 
-TINY = [
-    "env.num_envs=4",
-    "env.render.image_size=16",
-    "env.render.culling=false",
+TINY = TINY_LEARNER + [
     "env.scene.kind=room",
     "env.scene.num_scenes=2",
-    "env.goals_per_scene=2",
-    "train.rollout_length=4",
-    "train.replay_size=8",
-    "train.replay_batch=2",
-    "agent.conv_channels=[4,8,8,8]",
-    "agent.dense_size=16",
-    "agent.core_size=16",
     "pretrain.dataset_size=256",
     "pretrain.epochs=4",
     "pretrain.batch_size=32",

@@ -19,21 +19,12 @@ from a2catvn_jax.checkpoint import Checkpointer, CheckpointError
 from a2catvn_jax.config import load_config
 from a2catvn_jax.logger import read_jsonl
 from a2catvn_jax.train import TrainingError, main, train
+from tiny import TINY_LEARNER
 
-TINY = [
-    "env.num_envs=4",
-    "env.render.image_size=16",
-    "env.render.culling=false",
+TINY = TINY_LEARNER + [
     "env.scene.kind=room",
     "env.scene.num_scenes=1",
-    "env.goals_per_scene=2",
     "env.max_episode_steps=10",
-    "train.rollout_length=4",
-    "train.replay_size=8",
-    "train.replay_batch=2",
-    "agent.conv_channels=[4,8,8,8]",
-    "agent.dense_size=16",
-    "agent.core_size=16",
     "train.log_every=1",
     "train.checkpoint_every=2",
 ]

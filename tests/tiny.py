@@ -1,0 +1,15 @@
+"""The tiny learner the tests share: 4 environments, 16x16 images, the unculled renderer
+(fastest to compile), 4-step rollouts, a small network."""
+
+TINY_LEARNER = [
+    "env.num_envs=4",
+    "env.render.image_size=16",
+    "env.render.culling=false",
+    "env.goals_per_scene=2",
+    "train.rollout_length=4",
+    "train.replay_size=8",
+    "train.replay_batch=2",
+    "agent.conv_channels=[4,8,8,8]",
+    "agent.dense_size=16",
+    "agent.core_size=16",
+]
