@@ -30,8 +30,6 @@ ceil(H/4) x ceil(W/4).
 
 from __future__ import annotations
 
-import math
-
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -47,11 +45,6 @@ _PC_CHANNELS = 32
 def reward_class(reward):
     """0 for zero reward, 1 positive, 2 negative."""
     return jnp.where(reward > 0, 1, jnp.where(reward < 0, 2, 0)).astype(jnp.int32)
-
-
-def conv_grid(image_size: int) -> int:
-    """Side of the conv2..conv4 feature maps for an image side."""
-    return math.ceil(math.ceil(image_size / 4) / 2)
 
 
 def depth_to_space(x, block: int):

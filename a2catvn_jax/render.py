@@ -26,7 +26,6 @@ Speed comes from three things:
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import NamedTuple
 
 import jax
