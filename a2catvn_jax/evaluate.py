@@ -12,7 +12,9 @@ has finished ceil(episodes / B) episodes; the first `--episodes` of these, in
 environment order, are counted, so that short episodes are not favoured.
 
 `--houses held-out` generates houses the run never trained in (the same generator and
-settings, seeds offset by `HELD_OUT_OFFSET`). `--set` changes evaluation settings
+settings, seeds offset by `HELD_OUT_OFFSET`); `--houses new-targets` keeps the training
+houses but draws their goals anew (other target poses and images, goal seed offset by
+`NEW_TARGETS_OFFSET`). `--set` changes evaluation settings
 (`env.num_envs`, `env.max_episode_steps`, `env.complexity`, noise, ...); keys that
 shape the network are refused.
 
@@ -37,7 +39,8 @@ import numpy as np
 from a2catvn_jax.config import ConfigError, apply_overrides
 
 HELD_OUT_OFFSET = 1_000_003  # scene seed offset of held-out houses
-HOUSES = ("train", "held-out")
+NEW_TARGETS_OFFSET = 2_000_029  # goal seed offset of new targets in the training houses
+HOUSES = ("train", "held-out", "new-targets")
 # Keys the network's shapes depend on ("agent." is the whole section).
 NETWORK_KEYS = ("agent.", "env.render.image_size", "env.action_set", "train.pixel_control_cell", "train.aux_downsize")
 VIDEO_PANEL = 128  # video images are upscaled by an integer factor to at least this height
@@ -77,13 +80,18 @@ def eval_config(run_cfg, overrides: Sequence[str] = ()):
 
 
 def make_env(env_cfg, houses: str = "train"):
-    """A `NavEnv` in the run's training houses, or in held-out houses generated with offset seeds."""
+    """A `NavEnv` in the run's training houses, in held-out houses generated with offset
+    seeds, or in the training houses with new goals ("new-targets")."""
     from a2catvn_jax.env import NavEnv
+    from a2catvn_jax.world import World, make_scenes
 
     if houses not in HOUSES:
         raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
     if houses == "held-out" and env_cfg.scene.kind == "mjcf":
         raise ValueError("held-out houses need generated scenes; env.scene.kind is 'mjcf' (one fixed file)")
+    if houses == "new-targets":
+        world = World(env_cfg, make_scenes(env_cfg), seed=env_cfg.scene.seed + NEW_TARGETS_OFFSET)
+        return NavEnv(env_cfg, world=world)
     return NavEnv(env_cfg, seed_offset=0 if houses == "train" else HELD_OUT_OFFSET)
 
 
@@ -332,7 +340,7 @@ def main(argv=None) -> None:
     parser.add_argument("--workdir", required=True, help="the training run's work directory")
     parser.add_argument("--episodes", type=int, default=100, help="episodes to count (default 100)")
     parser.add_argument("--step", type=int, default=None, help="checkpoint update to evaluate (default: the latest)")
-    parser.add_argument("--houses", choices=HOUSES, default="train", help="the training houses or held-out ones")
+    parser.add_argument("--houses", choices=HOUSES, default="train", help="the training houses, held-out ones, or the training houses with new targets")
     parser.add_argument("--policy", choices=POLICIES, default="sample",
                         help="sample from the policy, take its argmax, or act uniformly at random (a baseline)")
     parser.add_argument("--video", default=None, metavar="FILE",

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from a2catvn_jax.config import ConfigError, load_config
-from a2catvn_jax.evaluate import HELD_OUT_OFFSET, default_output, evaluate, main
+from a2catvn_jax.evaluate import HELD_OUT_OFFSET, default_output, evaluate, main, make_env
 from a2catvn_jax.scenes import mjcf
 from a2catvn_jax.train import train
 from a2catvn_jax.world import make_scenes
@@ -94,6 +94,17 @@ def test_held_out_houses(run, cli_result):
     assert result["houses"] == "held-out" and result["policy"] == "greedy" and result["num_envs"] == 2
     assert result["scenes"] == [held_scene.name] and result["scenes"] != cli_result[0]["scenes"]
     assert result["episodes"] == 3 and all(n <= 8 for n in result["per_episode"]["length"])
+
+
+def test_new_targets_keep_the_houses_and_change_the_goals(run, cli_result):
+    cfg = load_config(None, TINY)
+    train_env, new_env = make_env(cfg.env, "train"), make_env(cfg.env, "new-targets")
+    assert [s.name for s in new_env.world.scenes] == [s.name for s in train_env.world.scenes]
+    assert not np.allclose(np.asarray(new_env.world.arrays.target_pose), np.asarray(train_env.world.arrays.target_pose))
+
+    result = evaluate(run, 2, houses="new-targets", overrides=["env.num_envs=2", "env.max_episode_steps=8"], log=quiet)
+    assert result["houses"] == "new-targets" and result["scenes"] == cli_result[0]["scenes"]
+    assert result["episodes"] == 2
 
 
 def test_network_changes_are_refused(run, capsys):
