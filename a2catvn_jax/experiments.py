@@ -1,0 +1,518 @@
+"""Comparisons of the method's variants: train with several seeds, evaluate, plot, tabulate.
+
+    python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1] [--episodes 100]
+        [--root runs/experiments] [--docs docs] [--set KEY=VALUE ...]
+    python -m a2catvn_jax.experiments --list
+
+Experiments (`EXPERIMENTS`):
+  aux             A2CAT-VN vs A2C+UNREAL vs plain A2C (image goals in one house)
+  memory          LSTM vs frame stack (mazes, UNREAL auxiliary tasks)
+  pretraining     with vs without supervised pre-training (image goals in one house)
+  curriculum      with vs without the complexity curriculum (image goals in one house)
+  generalisation  room-type goals over 16 houses; held-out houses and new targets
+  grid            the grid action set on small rooms (A2CAT-VN vs A2C)
+
+Each experiment names a configuration of `configs/`: `NAME_cpu.yaml` at `--scale cpu`
+(minutes per run on a laptop CPU), `NAME.yaml` at `--scale paper` (the paper's sizes,
+for a GPU). Every variant is trained once per seed (`seed=S`; the houses stay the same)
+in a work directory named by the hash of its configuration, so a variant shared by two
+experiments (e.g. A2CAT-VN in `aux`, the baseline of `curriculum`) is trained once, and
+an interrupted experiment resumes: finished runs are kept, unfinished ones continue
+from their last checkpoint. Pre-trained variants first run `pretrain` with the same
+seed. Each run is evaluated with the sampled policy in its training houses, with new
+targets in them and in held-out houses (`evaluate --houses`), and a uniformly random
+policy gives the baseline.
+
+Outputs: `DOCS/experiments/NAME_SCALE.png` (training success rate and episode length
+against frames: mean over seeds with a 95% t-interval band), `ROOT/SCALE/NAME.json`
+(every number), and a section of `DOCS/results.md` between the markers
+`<!-- experiment NAME SCALE -->` and `<!-- end experiment NAME SCALE -->` (rewritten on
+each run; text outside the markers is kept) with the command, machine, date, wall time
+and a table: frames until the smoothed training success rate first reaches the
+experiment's threshold, final training success, and evaluation success and SPL.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import functools
+import hashlib
+import json
+import math
+import os
+import platform
+import re
+import time
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+
+from a2catvn_jax.config import ConfigError, load_config, to_dict
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+SCALES = ("cpu", "paper")
+SMOOTH_FRACTION = 0.05  # curves are running means over this fraction of a run's log rows
+FINAL_FRACTION = 0.1  # "final" training success: the mean over this last fraction of the rows
+EVAL_SETS = {"train": "training houses", "new-targets": "new targets", "held-out": "held-out houses"}
+
+NO_VN = ("train.loss_weights.depth=0", "train.loss_weights.segmentation=0", "train.loss_weights.target_segmentation=0")
+NO_UNREAL = ("train.loss_weights.off_policy_critic=0", "train.loss_weights.pixel_control=0",
+             "train.loss_weights.reward_prediction=0")
+
+
+class ExperimentError(RuntimeError):
+    """An experiment cannot run as asked."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    label: str
+    overrides: tuple[str, ...] = ()
+    pretrain: bool = False  # start from `python -m a2catvn_jax.pretrain` with the same configuration and seed
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    name: str
+    title: str
+    config: str  # configs/<config>.yaml (paper) and configs/<config>_cpu.yaml (cpu)
+    variants: tuple[Variant, ...]
+    threshold: float  # training success rate for "frames to threshold"
+    evaluations: tuple[str, ...] = ("train", "new-targets", "held-out")
+    paper: str = ""  # what the paper reports for this comparison
+
+    def config_path(self, scale: str) -> Path:
+        if scale not in SCALES:
+            raise ExperimentError(f"scale must be one of {SCALES}, got {scale!r}")
+        return CONFIGS / (f"{self.config}_cpu.yaml" if scale == "cpu" else f"{self.config}.yaml")
+
+
+EXPERIMENTS = {e.name: e for e in (
+    Experiment(
+        "aux", "A2CAT-VN vs A2C+UNREAL vs A2C", "image_goals",
+        (Variant("A2CAT-VN"), Variant("A2C+UNREAL", NO_VN), Variant("A2C", NO_VN + NO_UNREAL)),
+        threshold=0.9,
+        paper="House3D, 16 houses: average episode length 200 after about 3M frames with the visual-navigation "
+              "auxiliary tasks, about 8M without them (A2C+UNREAL); plain A2C is not shown.",
+    ),
+    Experiment(
+        "memory", "LSTM vs frame stack", "maze",
+        (Variant("LSTM"), Variant("frame stack", ("agent.memory=frame_stack",))),
+        threshold=0.9,
+        paper="DeepMind Lab SeekAvoid, UNREAL auxiliary tasks: the LSTM clearly outperforms four stacked frames.",
+    ),
+    Experiment(
+        "pretraining", "with vs without supervised pre-training", "image_goals",
+        (Variant("no pre-training"), Variant("pre-trained", pretrain=True)),
+        threshold=0.9,
+        paper="Pre-training is part of the House3D run (2e4 images, 30 epochs of Adam); the paper reports no "
+              "ablation of it and names its effect as future work.",
+    ),
+    Experiment(
+        "curriculum", "with vs without the curriculum", "image_goals",
+        (Variant("no curriculum"), Variant("curriculum", ("train.curriculum=true",))),
+        threshold=0.9,
+        paper="The curriculum (complexity 0.3 to 1.0 between 5M and 10M frames) is part of the House3D run; "
+              "the paper reports no ablation of it.",
+    ),
+    Experiment(
+        "generalisation", "room-type goals in 16 houses: training vs held-out houses", "house_rooms",
+        (Variant("A2CAT-VN"),),
+        threshold=0.9,
+        paper="The paper leaves generalisation to unseen houses and unseen targets as future work.",
+    ),
+    Experiment(
+        "grid", "grid actions on small rooms: A2CAT-VN vs A2C", "grid",
+        (Variant("A2CAT-VN"), Variant("A2C", NO_VN + NO_UNREAL)),
+        threshold=0.9,
+        paper="AI2-THOR, four scenes, grid actions: A2CAT-VN finds the optimal solution after about 5e5 frames.",
+    ),
+)}
+
+
+# -- runs -----------------------------------------------------------------------------
+
+
+def run_key(cfg, pretrain: bool) -> str:
+    """8 hex digits naming a (configuration without its seed, pre-trained or not) pair."""
+    data = to_dict(cfg)
+    data.pop("seed")
+    text = json.dumps(data, sort_keys=True) + ("|pretrain" if pretrain else "")
+    return hashlib.sha256(text.encode()).hexdigest()[:8]
+
+
+@dataclasses.dataclass
+class Run:
+    variant: Variant
+    seed: int
+    cfg: object
+    workdir: Path
+
+
+def plan(exp: Experiment, scale: str, seeds: Sequence[int], root, overrides: Sequence[str] = ()) -> list[Run]:
+    """The runs of `exp`: every variant with every seed, configurations checked."""
+    path = exp.config_path(scale)
+    runs = []
+    for variant in exp.variants:
+        base = load_config(path, [*overrides, *variant.overrides])
+        key = run_key(base, variant.pretrain)
+        for seed in seeds:
+            cfg = load_config(path, [*overrides, *variant.overrides, f"seed={seed}"])
+            runs.append(Run(variant, seed, cfg, Path(root) / scale / exp.config / key / f"seed_{seed}"))
+    return runs
+
+
+def _finished(workdir: Path, total_updates: int) -> bool:
+    from a2catvn_jax.checkpoint import Checkpointer
+
+    if not (workdir / "checkpoints").is_dir():
+        return False
+    ckpt = Checkpointer(workdir, create=False)
+    try:
+        return max(ckpt.steps(), default=0) >= total_updates
+    finally:
+        ckpt.close()
+
+
+def train_run(run: Run, log: Callable[[str], None]) -> float:
+    """Train `run` to its end (resuming it if it was interrupted); returns the seconds it took now."""
+    from a2catvn_jax.pretrain import PRETRAINED_DIR, pretrain
+    from a2catvn_jax.train import train
+
+    if _finished(run.workdir, total_updates(run.cfg)):
+        return 0.0
+    t0 = time.perf_counter()
+    run.workdir.mkdir(parents=True, exist_ok=True)
+    (run.workdir / "variant.json").write_text(json.dumps(dataclasses.asdict(run.variant), indent=1) + "\n")
+    resume = (run.workdir / "checkpoints").is_dir()
+    init_from = None
+    if run.variant.pretrain and not resume:
+        init_from = run.workdir / "pretrain"
+        if not (init_from / PRETRAINED_DIR).is_dir():
+            log(f"pre-training {run.variant.label}, seed {run.seed}")
+            pretrain(run.cfg, init_from, log=lambda _: None)
+    log(f"{'resuming' if resume else 'training'} {run.variant.label}, seed {run.seed} in {run.workdir}")
+    train(run.cfg, run.workdir, resume=resume, progress=False, log=lambda _: None, init_from=init_from)
+    return time.perf_counter() - t0
+
+
+def evaluate_run(run: Run, houses: str, episodes: int, policy: str = "sample") -> dict:
+    """The evaluation of the run's last checkpoint, cached in its work directory."""
+    from a2catvn_jax.evaluate import evaluate, to_json
+
+    out = run.workdir / f"experiment_eval_{houses}_{policy}_{episodes}.json"
+    if out.exists():
+        result = json.loads(out.read_text())
+        if result["step"] == total_updates(run.cfg):
+            return result
+    result = evaluate(run.workdir, episodes, houses=houses, policy=policy, log=lambda _: None)
+    out.write_text(to_json(result))
+    return result
+
+
+def total_updates(cfg) -> int:
+    """The updates of a whole run (as `Learner.total_updates`)."""
+    return math.ceil(cfg.train.total_frames / (cfg.env.num_envs * cfg.train.rollout_length))
+
+
+# -- statistics -------------------------------------------------------------------------
+
+
+def smooth(y: np.ndarray, k: int) -> np.ndarray:
+    """Running mean over the last k finite values (NaN entries are skipped)."""
+    out = np.full(len(y), np.nan)
+    for i in range(len(y)):
+        window = y[max(0, i - k + 1) : i + 1]
+        window = window[np.isfinite(window)]
+        if window.size:
+            out[i] = window.mean()
+    return out
+
+
+def t_interval(values: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and 95% t-interval half-width over `axis` (half-width 0 for a single value)."""
+    from scipy import stats
+
+    values = np.asarray(values, float)
+    n = values.shape[axis]
+    mean = values.mean(axis=axis)
+    if n < 2:
+        return mean, np.zeros_like(mean)
+    sem = values.std(axis=axis, ddof=1) / math.sqrt(n)
+    return mean, stats.t.ppf(0.975, n - 1) * sem
+
+
+def curves(run: Run) -> dict:
+    """frames, and the smoothed success rate and episode length of a run's training log."""
+    from a2catvn_jax.logger import read_jsonl
+
+    rows = read_jsonl(run.workdir / "metrics.jsonl")
+    k = max(1, round(SMOOTH_FRACTION * len(rows)))
+    frames = np.array([r["frames"] for r in rows], float)
+    out = {"frames": frames}
+    for key in ("success_rate", "episode_length", "spl"):
+        out[key] = smooth(np.array([r.get(key, np.nan) for r in rows], float), k)
+    return out
+
+
+def frames_to_threshold(curve: dict, threshold: float) -> Optional[float]:
+    """The first logged frame count at which the smoothed success rate reaches `threshold`."""
+    hit = np.nonzero(curve["success_rate"] >= threshold)[0]
+    return float(curve["frames"][hit[0]]) if hit.size else None
+
+
+def final_success(run: Run) -> float:
+    from a2catvn_jax.logger import read_jsonl
+
+    rows = read_jsonl(run.workdir / "metrics.jsonl")
+    tail = rows[-max(1, round(FINAL_FRACTION * len(rows))):]
+    values = [r["success_rate"] for r in tail if r.get("success_rate") is not None and math.isfinite(r["success_rate"])]
+    return float(np.mean(values)) if values else math.nan
+
+
+def summarise(exp: Experiment, runs: list[Run], evals: dict, baseline: dict) -> dict:
+    """Per variant: curves (mean and interval), frames to threshold, final and evaluation numbers."""
+    variants = {}
+    for variant in exp.variants:
+        mine = [r for r in runs if r.variant == variant]
+        cs = [curves(r) for r in mine]
+        n = min(len(c["frames"]) for c in cs)
+        entry = {"seeds": [r.seed for r in mine], "workdirs": [str(r.workdir) for r in mine],
+                 "frames": cs[0]["frames"][:n].tolist()}
+        for key in ("success_rate", "episode_length"):
+            stacked = np.stack([c[key][:n] for c in cs])
+            mean, half = t_interval(stacked)
+            entry[key] = {"mean": mean.tolist(), "half_width": half.tolist()}
+        entry["frames_to_threshold"] = [frames_to_threshold(c, exp.threshold) for c in cs]
+        entry["final_success"] = [final_success(r) for r in mine]
+        entry["eval"] = {h: {m: [evals[(str(r.workdir), h)][m] for r in mine] for m in ("success_rate", "spl")}
+                         for h in exp.evaluations}
+        variants[variant.label] = entry
+    return {"experiment": exp.name, "title": exp.title, "threshold": exp.threshold, "variants": variants,
+            "random": baseline}
+
+
+# -- outputs --------------------------------------------------------------------------
+
+
+def plot(summary: dict, out, title: str) -> None:
+    """Success rate and episode length against frames, mean over seeds with a 95% band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for label, v in summary["variants"].items():
+        frames = np.array(v["frames"])
+        for ax, key in zip(axes, ("success_rate", "episode_length")):
+            mean, half = np.array(v[key]["mean"]), np.array(v[key]["half_width"])
+            line, = ax.plot(frames, mean, label=f"{label} ({len(v['seeds'])} seeds)")
+            ax.fill_between(frames, mean - half, mean + half, color=line.get_color(), alpha=0.2, linewidth=0)
+    axes[0].axhline(summary["threshold"], color="grey", linestyle=":", linewidth=1)
+    random = summary["random"].get("train")
+    if random is not None:
+        axes[0].axhline(random["success_rate"], color="black", linestyle="--", linewidth=1, label="random policy")
+    axes[0].set_ylim(0, 1.02)
+    for ax, name in zip(axes, ("training success rate", "training episode length")):
+        ax.set_xlabel("frames")
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+
+
+def _mean_pm(values, spec=".2f") -> str:
+    values = [v for v in values if v is not None and math.isfinite(v)]
+    if not values:
+        return "–"
+    if len(values) == 1:
+        return format(values[0], spec)
+    return f"{format(np.mean(values), spec)} ± {format(np.std(values, ddof=1), spec)}"
+
+
+def _frames(values) -> str:
+    reached = [v for v in values if v is not None]
+    if not reached:
+        return f"not reached (0/{len(values)})"
+    text = _mean_pm([v / 1e3 for v in reached], ".0f") + "k"
+    return text if len(reached) == len(values) else f"{text} ({len(reached)}/{len(values)} seeds)"
+
+
+def table(summary: dict, evaluations: Sequence[str]) -> str:
+    """The markdown table of a summary: mean ± sd over seeds."""
+    head = ["variant", f"frames to success {summary['threshold']:g}", "final training success"]
+    for h in evaluations:
+        head += [f"success, {EVAL_SETS[h]}", f"SPL, {EVAL_SETS[h]}"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for label, v in summary["variants"].items():
+        cells = [label, _frames(v["frames_to_threshold"]), _mean_pm(v["final_success"])]
+        for h in evaluations:
+            cells += [_mean_pm(v["eval"][h]["success_rate"]), _mean_pm(v["eval"][h]["spl"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    random = summary["random"]
+    cells = ["uniformly random policy", "–", "–"]
+    for h in evaluations:
+        r = random.get(h)
+        cells += ["–", "–"] if r is None else [f"{r['success_rate']:.2f}", f"{r['spl']:.2f}"]
+    lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def machine() -> str:
+    import jax
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    devices = ", ".join(sorted({d.device_kind for d in jax.devices()}))
+    return f"{os.cpu_count()}-core {cpu}; jax {jax.__version__} on {jax.default_backend()} ({devices})"
+
+
+def section(exp: Experiment, scale: str, summary: dict, command: str, wall: float, image: str) -> str:
+    evaluations = exp.evaluations
+    v0 = next(iter(summary["variants"].values()))
+    lines = [
+        f"### {exp.title} ({scale} scale)",
+        "",
+        f"Command: `{command}`  ",
+        f"Configuration: `configs/{exp.config_path(scale).name}`; variants: "
+        + "; ".join(f"{v.label}" + (f" (`{' '.join(v.overrides)}`)" if v.overrides else "")
+                    + (" (pre-trained)" if v.pretrain else "") for v in exp.variants) + ".  ",
+        f"Seeds: {', '.join(map(str, v0['seeds']))}. Evaluation: {summary['episodes']} episodes per run and set, "
+        f"sampled policy, complexity 1.  ",
+        f"Machine: {summary['machine']}. Date: {summary['date']}. Wall time: {wall / 60:.0f} min "
+        f"(training time not counted for runs trained earlier or by another experiment).",
+        "",
+        f"![{exp.name}]({image})",
+        "",
+        table(summary, evaluations),
+        "",
+        f"Mean ± standard deviation over seeds. Frames to threshold: the first log row at which the training "
+        f"success rate, a running mean over {SMOOTH_FRACTION:.0%} of the run, reaches {exp.threshold:g}. Final "
+        f"training success: the last {FINAL_FRACTION:.0%} of the run. The band in the plot is the 95% t-interval "
+        f"of the mean over seeds.",
+    ]
+    if exp.paper:
+        lines += ["", f"The paper: {exp.paper}"]
+    return "\n".join(lines)
+
+
+def write_section(results_md: Path, exp: Experiment, scale: str, text: str) -> None:
+    """Put `text` between the experiment's markers in `results_md` (appended the first time)."""
+    start, end = f"<!-- experiment {exp.name} {scale} -->", f"<!-- end experiment {exp.name} {scale} -->"
+    block = f"{start}\n{text}\n{end}"
+    old = results_md.read_text() if results_md.exists() else "# Results\n"
+    pattern = re.compile(re.escape(start) + r".*?" + re.escape(end), re.S)
+    new = pattern.sub(lambda _: block, old) if pattern.search(old) else old.rstrip("\n") + "\n\n" + block + "\n"
+    results_md.parent.mkdir(parents=True, exist_ok=True)
+    results_md.write_text(new)
+
+
+# -- the whole experiment ----------------------------------------------------------------
+
+
+def _compilation_cache(directory: Path) -> None:
+    """Keep compiled programs on disk: seeds of a variant (same shapes and scenes) compile once."""
+    import jax
+
+    if jax.config.jax_compilation_cache_dir is None:
+        jax.config.update("jax_compilation_cache_dir", str(directory.absolute()))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] = (0, 1), episodes: int = 100,
+                   root="runs/experiments", docs="docs", overrides: Sequence[str] = (), command: str = "",
+                   log: Optional[Callable[[str], None]] = None) -> dict:
+    """Train, evaluate and report `exp`; returns its summary (also written as JSON)."""
+    log = log or functools.partial(print, flush=True)
+    if not seeds:
+        raise ExperimentError("at least one seed is needed")
+    if len(set(seeds)) != len(seeds):
+        raise ExperimentError(f"seeds must differ, got {list(seeds)}")
+    if episodes < 1:
+        raise ExperimentError(f"episodes must be >= 1, got {episodes}")
+    t0 = time.perf_counter()
+    runs = plan(exp, scale, seeds, root, overrides)
+    _compilation_cache(Path(root) / ".jax_cache")
+    for i, run in enumerate(runs):
+        log(f"[{i + 1}/{len(runs)}] {run.variant.label}, seed {run.seed}")
+        seconds = train_run(run, log)
+        if seconds:
+            log(f"  trained in {seconds / 60:.1f} min")
+    evals = {}
+    for run in runs:
+        for houses in exp.evaluations:
+            evals[(str(run.workdir), houses)] = evaluate_run(run, houses, episodes)
+        log(f"evaluated {run.variant.label}, seed {run.seed}: " + ", ".join(
+            f"{h} {evals[(str(run.workdir), h)]['success_rate']:.2f}" for h in exp.evaluations))
+    baseline = {h: {k: evaluate_run(runs[0], h, episodes, policy="random")[k] for k in ("success_rate", "spl")}
+                for h in exp.evaluations}
+    summary = summarise(exp, runs, evals, baseline)
+    wall = time.perf_counter() - t0
+    summary.update(scale=scale, episodes=episodes, overrides=list(overrides), machine=machine(),
+                   date=datetime.date.today().isoformat(), wall_seconds=wall, command=command)
+    out_json = Path(root) / scale / f"{exp.name}.json"
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps(summary, indent=1) + "\n")
+    docs = Path(docs)
+    image = docs / "experiments" / f"{exp.name}_{scale}.png"
+    plot(summary, image, f"{exp.title} ({scale} scale, configs/{exp.config_path(scale).name})")
+    write_section(docs / "results.md", exp, scale,
+                  section(exp, scale, summary, command, wall, image.relative_to(docs).as_posix()))
+    log(f"wrote {image}, {out_json} and its section of {docs / 'results.md'}")
+    log(table(summary, exp.evaluations))
+    return summary
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.experiments", description=__doc__.split("\n\n")[0])
+    parser.add_argument("name", nargs="?", help="experiment: " + ", ".join(EXPERIMENTS))
+    parser.add_argument("--list", action="store_true", help="list the experiments and their variants")
+    parser.add_argument("--scale", choices=SCALES, default="cpu")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes per run and set")
+    parser.add_argument("--root", default="runs/experiments", help="where the runs go")
+    parser.add_argument("--docs", default="docs", help="where results.md and the plots go")
+    parser.add_argument("--set", dest="overrides", metavar="KEY=VALUE", nargs="+", action="append", default=[],
+                        help="configuration changes applied to every variant (they change the runs' names)")
+    args = parser.parse_args(argv)
+    if args.list:
+        for exp in EXPERIMENTS.values():
+            print(f"{exp.name}: {exp.title} (configs/{exp.config}[_cpu].yaml)")
+            for v in exp.variants:
+                print(f"  {v.label}: {' '.join(v.overrides) or 'as configured'}{' + pre-training' if v.pretrain else ''}")
+        return
+    if args.name is None:
+        parser.error("name an experiment (or --list)")
+    if args.name not in EXPERIMENTS:
+        parser.error(f"unknown experiment {args.name!r}; choose one of {', '.join(EXPERIMENTS)}")
+    command = "python -m a2catvn_jax.experiments " + " ".join(argv if argv is not None else os.sys.argv[1:])
+    from a2catvn_jax.checkpoint import CheckpointError
+    from a2catvn_jax.pretrain import PretrainError
+    from a2catvn_jax.train import TrainingError
+
+    try:
+        run_experiment(EXPERIMENTS[args.name], scale=args.scale, seeds=args.seeds, episodes=args.episodes,
+                       root=args.root, docs=args.docs, overrides=[o for g in args.overrides for o in g],
+                       command=command.strip())
+    except (ConfigError, ExperimentError, ValueError) as e:
+        parser.error(str(e))
+    except (CheckpointError, TrainingError, PretrainError) as e:
+        parser.exit(1, f"error: {e}\n")
+
+
+if __name__ == "__main__":
+    main()
