@@ -193,6 +193,43 @@ def _video_frames(env, steps: list[dict], episodes: int) -> list[np.ndarray]:
     return frames
 
 
+def restore(workdir, step: Optional[int] = None, houses: str = "train", overrides: Sequence[str] = (),
+            log: Callable[[str], None] = lambda _: None):
+    """Checkpoint `step` (default: the latest) of the run in `workdir`, ready to act in `houses`.
+
+    Returns (cfg, run_cfg, env, learner, params, step, meta): the evaluation configuration
+    (the run's at complexity 1 with `overrides`), the run's own, the environment, a
+    learner over it, the parameters, the update restored and the checkpoint's metadata.
+    """
+    import jax
+
+    from a2catvn_jax.checkpoint import Checkpointer, CheckpointError, read_run_config
+    from a2catvn_jax.env import NavEnv
+    from a2catvn_jax.learner import Learner
+
+    if houses not in HOUSES:
+        raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
+    workdir = Path(workdir)
+    if not workdir.is_dir():
+        raise CheckpointError(f"{workdir}: no such directory")
+    run_cfg = read_run_config(workdir)
+    cfg = eval_config(run_cfg, overrides)
+
+    ckpt = Checkpointer(workdir, create=False)
+    try:
+        step = _resolve_step(ckpt, step)
+        t0 = time.perf_counter()
+        env = make_env(cfg.env, houses)
+        log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
+        # The TrainState's shapes do not depend on the scenes: the template borrows env's world.
+        template = jax.eval_shape(Learner(run_cfg, NavEnv(run_cfg.env, world=env.world)).init, jax.random.PRNGKey(0))
+        state, meta = ckpt.restore(template, run_cfg, step)
+    finally:
+        ckpt.close()
+    log(f"restored update {step} ({meta['frames']:,} training frames) from {ckpt.directory}")
+    return cfg, run_cfg, env, Learner(cfg, env), state.params, step, meta
+
+
 def evaluate(
     workdir,
     episodes: int = 100,
@@ -219,41 +256,15 @@ def evaluate(
     """
     import jax
 
-    from a2catvn_jax.checkpoint import Checkpointer, CheckpointError, read_run_config
-    from a2catvn_jax.env import NavEnv
-    from a2catvn_jax.learner import Learner
-
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if policy not in POLICIES:
         raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
-    if houses not in HOUSES:
-        raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
     if video is not None:
         if video_episodes < 1:
             raise ValueError(f"video_episodes must be >= 1, got {video_episodes}")
         _check_video(video)
-    workdir = Path(workdir)
-    if not workdir.is_dir():
-        raise CheckpointError(f"{workdir}: no such directory")
-    run_cfg = read_run_config(workdir)
-    cfg = eval_config(run_cfg, overrides)
-
-    ckpt = Checkpointer(workdir, create=False)
-    try:
-        step = _resolve_step(ckpt, step)
-        t0 = time.perf_counter()
-        env = make_env(cfg.env, houses)
-        log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
-        # The TrainState's shapes do not depend on the scenes: the template borrows env's world.
-        template = jax.eval_shape(Learner(run_cfg, NavEnv(run_cfg.env, world=env.world)).init, jax.random.PRNGKey(0))
-        state, meta = ckpt.restore(template, run_cfg, step)
-    finally:
-        ckpt.close()
-    params = state.params
-    log(f"restored update {step} ({meta['frames']:,} training frames) from {ckpt.directory}")
-
-    learner = Learner(cfg, env)
+    cfg, _, env, learner, params, step, meta = restore(workdir, step, houses, overrides, log)
     B = env.num_envs
     per_env = math.ceil(episodes / B)
     chunk = min(MAX_CHUNK, per_env * cfg.env.max_episode_steps)

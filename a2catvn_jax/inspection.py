@@ -1,0 +1,188 @@
+"""Look inside a trained agent: restore a checkpoint, record an episode with the network's
+depth and segmentation predictions, and draw them beside the ground truth and the path.
+
+    from a2catvn_jax import inspection
+    agent = inspection.load_agent("runs/quickstart")           # latest checkpoint, training houses
+    rec = inspection.record(agent, steps=200, seed=0)          # environment 0, step by step
+    inspection.prediction_figure(agent, rec, t=10)             # matplotlib Figure
+    inspection.path_map(agent, rec, episode=0)                 # [size, size, 3] uint8 top-down map
+
+Used by `notebooks/evaluate.ipynb`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+RECORD_OBS = ("rgb", "depth", "segmentation_rgb", "target_rgb", "target_depth", "target_segmentation_rgb")
+RECORD_INFO = ("pose", "target_pose", "scene", "goal")
+
+
+@dataclasses.dataclass
+class Agent:
+    """A restored run: its configuration (at evaluation settings), environment, learner and parameters."""
+
+    workdir: Path
+    run_cfg: object
+    cfg: object
+    env: object
+    learner: object
+    params: object
+    step: int
+    frames: int
+
+    @property
+    def trained_vn_heads(self) -> tuple[str, ...]:
+        """The depth / segmentation heads that had a non-zero loss weight in training."""
+        from a2catvn_jax.networks import VN_HEADS
+
+        w = self.run_cfg.train.loss_weights
+        return tuple(h for h in VN_HEADS if getattr(w, h) > 0)
+
+
+def load_agent(workdir, step: Optional[int] = None, houses: str = "train", overrides: Sequence[str] = ()) -> Agent:
+    """Restore checkpoint `step` (default: the latest) of the run in `workdir`.
+
+    `houses` and `overrides` are those of `python -m a2catvn_jax.evaluate` (the network's
+    keys cannot change). Raises `CheckpointError`, `ConfigError` and `ValueError`.
+    """
+    from a2catvn_jax.evaluate import restore
+
+    cfg, run_cfg, env, learner, params, step, meta = restore(workdir, step, houses, overrides)
+    return Agent(Path(workdir), run_cfg, cfg, env, learner, params, step, int(meta["frames"]))
+
+
+def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", env_index: int = 0) -> dict:
+    """`steps` steps of all environments; returns environment `env_index`'s record as numpy
+    arrays with a leading time axis: the observation before each step (RECORD_OBS), its
+    pose / target / scene / goal, the action, reward, done and success of the step, and
+    the network's predictions at the ground truth's resolution: depth_pred (metres),
+    segmentation_pred and target_segmentation_pred (RGB in [0, 1])."""
+    import jax
+    import jax.numpy as jnp
+
+    from a2catvn_jax.learner import DEPTH_SCALE
+    from a2catvn_jax.networks import VN_HEADS, A2CATNet
+
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    if policy not in ("sample", "greedy", "random"):
+        raise ValueError(f"policy must be sample, greedy or random, got {policy!r}")
+    env, learner = agent.env, agent.learner
+    if not 0 <= env_index < env.num_envs:
+        raise ValueError(f"env_index must be in [0, {env.num_envs}), got {env_index}")
+    colors = jnp.asarray(learner._colors)
+
+    def as_rgb(seg):
+        if agent.cfg.agent.segmentation_loss == "cross_entropy":
+            return colors[jnp.argmax(seg, -1)]
+        return jnp.clip(seg, 0.0, 1.0)
+
+    @jax.jit
+    def step(params, target_feats, env_state, agent_state, key):
+        k_act, k_random = jax.random.split(key)
+        core, action, _, _ = learner.act(params, target_feats, agent_state, env_state, k_act, policy == "greedy")
+        if policy == "random":
+            action = jax.random.randint(k_random, action.shape, 0, env.num_actions)
+        inputs = learner.inputs(env_state, agent_state)
+        conv4, _ = learner.net.apply(params, inputs["rgb"], target_feats[inputs["target"]], method=A2CATNet.encode)
+        pred = learner.net.apply(params, conv4, VN_HEADS, method=A2CATNet.vn_heads)
+        nxt = env.step(env_state, action)
+        out = {k: env_state.obs[k][env_index] for k in RECORD_OBS}
+        out.update({k: env_state.info[k][env_index] for k in RECORD_INFO})
+        out.update(action=action[env_index], reward=nxt.reward[env_index], done=nxt.done[env_index],
+                   success=nxt.metrics["success"][env_index],
+                   depth_pred=pred["depth"][env_index] / DEPTH_SCALE,
+                   segmentation_pred=as_rgb(pred["segmentation"][env_index]),
+                   target_segmentation_pred=as_rgb(pred["target_segmentation"][env_index]))
+        return nxt, learner.observe(core, action, nxt), out
+
+    key = jax.random.PRNGKey(seed)
+    key, k_reset = jax.random.split(key)
+    env_state = jax.jit(lambda k: env.reset(k, complexity=agent.cfg.env.complexity))(k_reset)
+    agent_state = learner.initial_agent()
+    target_feats = jax.jit(learner.target_features)(agent.params)
+    rows = []
+    for k in jax.random.split(key, steps):
+        env_state, agent_state, out = step(agent.params, target_feats, env_state, agent_state, k)
+        rows.append(jax.device_get(out))
+    return {name: np.stack([r[name] for r in rows]) for name in rows[0]}
+
+
+def episodes(rec: dict) -> list[tuple[int, int]]:
+    """(first, last) step indices of the episodes in a record (the last may be unfinished)."""
+    ends = list(np.nonzero(rec["done"])[0])
+    starts = [0] + [e + 1 for e in ends]
+    spans = [(s, e) for s, e in zip(starts, ends)]
+    if starts[-1] < len(rec["done"]):
+        spans.append((starts[-1], len(rec["done"]) - 1))
+    return spans
+
+
+def _downsized(image: np.ndarray, size: int) -> np.ndarray:
+    f = image.shape[0] // size
+    return image.reshape(size, f, size, f, *image.shape[2:]).mean(axis=(1, 3))
+
+
+def prediction_figure(agent: Agent, rec: dict, t: int):
+    """A matplotlib Figure for step `t`: observation and target; depth, observation
+    segmentation and target segmentation, ground truth above the prediction."""
+    from matplotlib.figure import Figure  # no pyplot: works with any backend; notebooks display it
+
+    if not 0 <= t < len(rec["done"]):
+        raise ValueError(f"t must be in [0, {len(rec['done'])}), got {t}")
+    a = rec["depth_pred"].shape[1]
+    trained = agent.trained_vn_heads
+    panels = [
+        ("observation", rec["rgb"][t], None),
+        ("target", rec["target_rgb"][t], None),
+        ("depth", _downsized(rec["depth"][t], a), rec["depth_pred"][t], "depth"),
+        ("segmentation", _downsized(rec["segmentation_rgb"][t] / 255.0, a), rec["segmentation_pred"][t], "segmentation"),
+        ("target segmentation", _downsized(rec["target_segmentation_rgb"][t] / 255.0, a),
+         rec["target_segmentation_pred"][t], "target_segmentation"),
+    ]
+    fig = Figure(figsize=(2.0 * len(panels), 4.2))
+    axes = fig.subplots(2, len(panels))
+    vmax = float(max(rec["depth"][t].max(), 1e-3))
+    for col, panel in enumerate(panels):
+        top, bottom = axes[0][col], axes[1][col]
+        if panel[2] is None:
+            top.imshow(panel[1])
+            top.set_title(panel[0], fontsize=8)
+            bottom.set_visible(False)
+        else:
+            name, truth, pred, head = panel
+            kw = {"cmap": "viridis", "vmin": 0.0, "vmax": vmax} if name == "depth" else {}
+            top.imshow(truth, **kw)
+            top.set_title(f"{name}: truth", fontsize=8)
+            bottom.imshow(pred, **kw)
+            bottom.set_title(f"prediction{'' if head in trained else ' (head untrained)'}", fontsize=8)
+        for ax in (top, bottom):
+            ax.set_axis_off()
+    fig.suptitle(f"{agent.workdir} update {agent.step}, step {t}: action {agent.env.action_names[int(rec['action'][t])]}",
+                 fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def path_map(agent: Agent, rec: dict, episode: int = 0, size: int = 256) -> np.ndarray:
+    """[size, size, 3] uint8: the top-down map of an episode's scene with its path, final
+    pose and target pose."""
+    from a2catvn_jax.scenes.plot import TopdownMap
+
+    spans = episodes(rec)
+    if not 0 <= episode < len(spans):
+        raise ValueError(f"episode must be in [0, {len(spans)}), got {episode}")
+    first, last = spans[episode]
+    scene = int(rec["scene"][first])
+    goal = int(rec["goal"][first])
+    target_scene = int(np.asarray(agent.env.world.arrays.target_scene)[scene, goal])
+    target = rec["target_pose"][first] if target_scene == scene else None
+    outcome = "success" if rec["success"][last] else ("failed" if rec["done"][last] else "unfinished")
+    text = f"episode {episode + 1}: {last - first + 1} steps, {outcome}"
+    return TopdownMap(agent.env.world.scenes[scene], size).render(rec["pose"][first : last + 1, :2],
+                                                                 rec["pose"][last], target, text)
