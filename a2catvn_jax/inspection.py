@@ -183,6 +183,6 @@ def path_map(agent: Agent, rec: dict, episode: int = 0, size: int = 256) -> np.n
     target_scene = int(np.asarray(agent.env.world.arrays.target_scene)[scene, goal])
     target = rec["target_pose"][first] if target_scene == scene else None
     outcome = "success" if rec["success"][last] else ("failed" if rec["done"][last] else "unfinished")
-    text = f"episode {episode + 1}: {last - first + 1} steps, {outcome}"
+    text = f"{episode + 1}: {last - first + 1} steps, {outcome}"
     return TopdownMap(agent.env.world.scenes[scene], size).render(rec["pose"][first : last + 1, :2],
                                                                  rec["pose"][last], target, text)
