@@ -24,8 +24,8 @@ targets in them and in held-out houses (`evaluate --houses`), and a uniformly ra
 policy gives the baseline.
 
 Outputs: `DOCS/experiments/NAME_SCALE.png` (training success rate and episode length
-against frames: mean over seeds with a 95% t-interval band), `ROOT/SCALE/NAME.json`
-(every number), and a section of `DOCS/results.md` between the markers
+against frames: the mean over seeds, shaded ± one standard error), `ROOT/SCALE/NAME.json`
+(every number, 95% t-intervals of the curves included), and a section of `DOCS/results.md` between the markers
 `<!-- experiment NAME SCALE -->` and `<!-- end experiment NAME SCALE -->` (rewritten on
 each run; text outside the markers is kept) with the command, machine, date, wall time
 and a table: frames until the smoothed training success rate first reaches the
@@ -54,7 +54,7 @@ from a2catvn_jax.config import ConfigError, load_config, to_dict
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SCALES = ("cpu", "paper")
-SMOOTH_FRACTION = 0.05  # curves are running means over this fraction of a run's log rows
+SMOOTH_FRACTION = 0.1  # curves are running means over this fraction of a run's log rows
 FINAL_FRACTION = 0.1  # "final" training success: the mean over this last fraction of the rows
 EVAL_SETS = {"train": "training houses", "new-targets": "new targets", "held-out": "held-out houses"}
 
@@ -246,6 +246,13 @@ def smooth(y: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
+def standard_error(values: np.ndarray, axis: int = 0) -> np.ndarray:
+    """Standard error of the mean over `axis` (0 for a single value)."""
+    values = np.asarray(values, float)
+    n = values.shape[axis]
+    return values.std(axis=axis, ddof=1) / math.sqrt(n) if n > 1 else np.zeros_like(values.mean(axis=axis))
+
+
 def t_interval(values: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Mean and 95% t-interval half-width over `axis` (half-width 0 for a single value)."""
     from scipy import stats
@@ -299,7 +306,8 @@ def summarise(exp: Experiment, runs: list[Run], evals: dict, baseline: dict, thr
         for key in ("success_rate", "episode_length"):
             stacked = np.stack([c[key][:n] for c in cs])
             mean, half = t_interval(stacked)
-            entry[key] = {"mean": mean.tolist(), "half_width": half.tolist()}
+            entry[key] = {"mean": mean.tolist(), "sem": standard_error(stacked).tolist(),
+                          "half_width_95": half.tolist()}
         entry["frames_to_threshold"] = [frames_to_threshold(c, threshold) for c in cs]
         entry["final_success"] = [final_success(r) for r in mine]
         entry["training_seconds"] = [training_seconds(r) for r in mine]
@@ -314,7 +322,8 @@ def summarise(exp: Experiment, runs: list[Run], evals: dict, baseline: dict, thr
 
 
 def plot(summary: dict, out, title: str) -> None:
-    """Success rate and episode length against frames, mean over seeds with a 95% band."""
+    """Success rate and episode length against frames: the mean over seeds, shaded ± one
+    standard error (with 2 seeds, exactly the range between them)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -324,7 +333,7 @@ def plot(summary: dict, out, title: str) -> None:
     for label, v in summary["variants"].items():
         frames = np.array(v["frames"])
         for ax, key in zip(axes, ("success_rate", "episode_length")):
-            mean, half = np.array(v[key]["mean"]), np.array(v[key]["half_width"])
+            mean, half = np.array(v[key]["mean"]), np.array(v[key]["sem"])
             line, = ax.plot(frames, mean, label=f"{label} ({len(v['seeds'])} seeds)")
             ax.fill_between(frames, mean - half, mean + half, color=line.get_color(), alpha=0.2, linewidth=0)
     axes[0].axhline(summary["threshold"], color="grey", linestyle=":", linewidth=1)
@@ -332,8 +341,12 @@ def plot(summary: dict, out, title: str) -> None:
     if random is not None:
         axes[0].axhline(random["success_rate"], color="black", linestyle="--", linewidth=1, label="random policy")
     axes[0].set_ylim(0, 1.02)
+    axes[1].set_ylim(0, summary["max_episode_steps"] * 1.02)
+    from matplotlib.ticker import EngFormatter
+
     for ax, name in zip(axes, ("training success rate", "training episode length")):
         ax.set_xlabel("frames")
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))
         ax.set_title(name)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
@@ -357,7 +370,7 @@ def _frames(values) -> str:
     reached = [v for v in values if v is not None]
     if not reached:
         return f"not reached (0/{len(values)})"
-    text = _mean_pm([v / 1e3 for v in reached], ".0f") + "k"
+    text = " ± ".join(part + "k" for part in _mean_pm([v / 1e3 for v in reached], ".0f").split(" ± "))
     return text if len(reached) == len(values) else f"{text} ({len(reached)}/{len(values)} seeds)"
 
 
@@ -419,8 +432,9 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, wall: floa
         "",
         f"Mean ± standard deviation over seeds. Frames to threshold: the first log row at which the training "
         f"success rate, a running mean over {SMOOTH_FRACTION:.0%} of the run, reaches {summary['threshold']:g}. Final "
-        f"training success: the last {FINAL_FRACTION:.0%} of the run. The band in the plot is the 95% t-interval "
-        f"of the mean over seeds.",
+        f"training success: the last {FINAL_FRACTION:.0%} of the run. Curves: the mean over seeds of that running "
+        f"mean, shaded ± one standard error (with two seeds, the range between them); the dotted line is the "
+        f"threshold, the dashed one the random policy's success rate in the training houses.",
     ]
     if exp.paper:
         lines += ["", f"The paper: {exp.paper}"]
@@ -488,7 +502,7 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
                 for h in exp.evaluations}
     summary = summarise(exp, runs, evals, baseline, threshold)
     wall = time.perf_counter() - t0
-    summary.update(scale=scale, episodes=episodes, overrides=list(overrides), machine=machine(),
+    summary.update(scale=scale, episodes=episodes, max_episode_steps=runs[0].cfg.env.max_episode_steps, overrides=list(overrides), machine=machine(),
                    date=datetime.date.today().isoformat(), wall_seconds=wall, command=command)
     out_json = Path(root) / scale / f"{exp.name}.json"
     out_json.parent.mkdir(parents=True, exist_ok=True)

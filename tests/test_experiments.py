@@ -57,6 +57,8 @@ def test_statistics():
     np.testing.assert_allclose(mean - half, low)
     np.testing.assert_allclose(mean + half, high)
     np.testing.assert_allclose(ex.t_interval(values[:1])[1], 0.0)
+    np.testing.assert_allclose(ex.standard_error(values), stats.sem(values, axis=0))
+    np.testing.assert_allclose(ex.standard_error(values[:2]), np.abs(values[0] - values[1]) / 2)  # the range
     np.testing.assert_allclose(ex.smooth(np.array([1.0, np.nan, 3.0, 5.0]), 2), [1.0, 1.0, 3.0, 4.0])
     curve = {"frames": np.array([10.0, 20.0, 30.0]), "success_rate": np.array([0.2, 0.75, 0.6])}
     assert ex.frames_to_threshold(curve, 0.7) == 20.0
@@ -96,7 +98,7 @@ def test_tiny_experiment_reports(tiny_experiment):
     full, again = summary["variants"]["full"], summary["variants"]["full again"]
     assert full["workdirs"] == again["workdirs"] and full["seeds"] == [3]
     assert full["frames"] == [16.0, 32.0]  # one log row per update of 4 envs x 4 steps
-    assert len(full["success_rate"]["mean"]) == 2 and full["success_rate"]["half_width"] == [0.0, 0.0]
+    assert len(full["success_rate"]["mean"]) == 2 and full["success_rate"]["sem"] == [0.0, 0.0]
     assert summary["threshold"] == 0.5 and summary["random"]["train"]["success_rate"] >= 0.0
     for v in summary["variants"].values():
         result = v["eval"]["train"]
