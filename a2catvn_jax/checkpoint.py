@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Optional
 
@@ -98,6 +99,23 @@ class Checkpointer:
         run uses now; with `cfg` given, a checkpoint written under a different
         configuration is refused.
         """
+        step, path, meta = self._checked_meta(cfg, step)
+        abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
+        state = self._restore_state(path, step, ocp.args.StandardRestore(abstract))
+        self._check_shapes(path, abstract, state)
+        return state, meta
+
+    def restore_params(self, template, cfg: Optional[Config] = None, step: Optional[int] = None):
+        """(params, meta): only the network parameters of checkpoint `step`, shaped like
+        `template` (e.g. `jax.eval_shape(learner.init_params, key)`); the optimiser state
+        and replay buffer stay on disk."""
+        step, path, meta = self._checked_meta(cfg, step)
+        abstract = {"params": jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)}
+        params = self._restore_state(path, step, ocp.args.PyTreeRestore(item=abstract, partial_restore=True))["params"]
+        self._check_shapes(path, abstract["params"], params)
+        return params, meta
+
+    def _checked_meta(self, cfg: Optional[Config], step: Optional[int]):
         steps = self.steps()
         if not steps:
             raise CheckpointError(f"{self.workdir}: no checkpoint found in {self.directory}")
@@ -121,11 +139,15 @@ class Checkpointer:
                     f"{path} was written with a different configuration:\n  " + "\n  ".join(diff)
                     + "\nResume with the run's own configuration (omit --config/--set) or start a new work directory."
                 )
-        abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
+        return step, path, meta
+
+    def _restore_state(self, path, step: int, args):
         previous_hook = sys.unraisablehook
         sys.unraisablehook = _quiet_abandoned_reads(previous_hook)
         try:
-            restored = self.manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))
+            with warnings.catch_warnings():  # orbax warns that no sharding was given: arrays go to the default device
+                warnings.simplefilter("ignore", UserWarning)
+                restored = self.manager.restore(step, args=ocp.args.Composite(state=args))
             sys.unraisablehook = previous_hook
         except Exception as e:  # noqa: BLE001
             # The hook stays: reads abandoned by the failed restore may still finish later.
@@ -133,13 +155,15 @@ class Checkpointer:
                 f"{path}: the checkpoint is corrupt or does not match this configuration "
                 f"({type(e).__name__}: {_short(str(e))})"
             ) from None
-        state = restored["state"]
+        return restored["state"]
+
+    @staticmethod
+    def _check_shapes(path, abstract, restored) -> None:
         paths = jax.tree_util.tree_flatten_with_path(abstract)[0]
-        leaves = jax.tree_util.tree_leaves(state)
+        leaves = jax.tree_util.tree_leaves(restored)
         bad = [jax.tree_util.keystr(p) for (p, want), got in zip(paths, leaves) if np.shape(got) != want.shape]
         if bad:
             raise CheckpointError(f"{path}: array shapes do not match this configuration at {', '.join(bad[:5])}")
-        return state, meta
 
     def close(self):
         self.manager.close()

@@ -221,13 +221,15 @@ def restore(workdir, step: Optional[int] = None, houses: str = "train", override
         t0 = time.perf_counter()
         env = make_env(cfg.env, houses)
         log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
-        # The TrainState's shapes do not depend on the scenes: the template borrows env's world.
-        template = jax.eval_shape(Learner(run_cfg, NavEnv(run_cfg.env, world=env.world)).init, jax.random.PRNGKey(0))
-        state, meta = ckpt.restore(template, run_cfg, step)
+        # Only the parameters are read (not the optimiser state or the replay buffer). Their
+        # shapes do not depend on the scenes: the template borrows env's world.
+        template = jax.eval_shape(Learner(run_cfg, NavEnv(run_cfg.env, world=env.world)).init_params,
+                                  jax.random.PRNGKey(0))
+        params, meta = ckpt.restore_params(template, run_cfg, step)
     finally:
         ckpt.close()
     log(f"restored update {step} ({meta['frames']:,} training frames) from {ckpt.directory}")
-    return cfg, run_cfg, env, Learner(cfg, env), state.params, step, meta
+    return cfg, run_cfg, env, Learner(cfg, env), params, step, meta
 
 
 def evaluate(

@@ -119,6 +119,11 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(tmp_path):
 
     state, meta = ckpt.restore(jax.eval_shape(Learner(cfg).init, jax.random.PRNGKey(0)), cfg)
     assert all(np.all(np.isfinite(x)) for x in _leaves(state.params))
+    # The parameters alone, as evaluation reads them, are the same arrays.
+    params, meta_p = Checkpointer(tmp_path, create=False).restore_params(
+        jax.eval_shape(Learner(cfg).init_params, jax.random.PRNGKey(0)), cfg)
+    assert meta_p == meta
+    assert all(np.array_equal(a, b) for a, b in zip(_leaves(params), _leaves(state.params)))
     rows = read_jsonl(tmp_path / "metrics.jsonl")
     assert all(np.isfinite(r["loss/total"]) for r in rows)
     assert json.dumps(meta)  # the record is plain JSON
