@@ -409,7 +409,7 @@ def machine() -> str:
     return f"{os.cpu_count()}-core {cpu}; jax {jax.__version__} on {jax.default_backend()} ({devices})"
 
 
-def section(exp: Experiment, scale: str, summary: dict, command: str, wall: float, image: str) -> str:
+def section(exp: Experiment, scale: str, summary: dict, command: str, image: str) -> str:
     evaluations = exp.evaluations
     v0 = next(iter(summary["variants"].values()))
     lines = [
@@ -424,7 +424,7 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, wall: floa
         f"Machine: {summary['machine']}. Date: {summary['date']}. Training wall time per run: "
         + "; ".join(f"{label} {_mean_pm([s / 60 for s in v['training_seconds'] if s is not None], '.1f')} min"
                     for label, v in summary["variants"].items())
-        + f" (compilation and pre-training included). This report took {wall / 60:.0f} min.",
+        + " (compilation and pre-training included).",
         "",
         f"![{exp.name}]({image})",
         "",
@@ -511,7 +511,7 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
     image = docs / "experiments" / f"{exp.name}_{scale}.png"
     plot(summary, image, f"{exp.title} ({scale} scale, configs/{exp.config_path(scale).name})")
     write_section(docs / "results.md", exp, scale,
-                  section(exp, scale, summary, command, wall, image.relative_to(docs).as_posix()))
+                  section(exp, scale, summary, command, image.relative_to(docs).as_posix()))
     log(f"wrote {image}, {out_json} and its section of {docs / 'results.md'}")
     log(table(summary, exp.evaluations))
     return summary
