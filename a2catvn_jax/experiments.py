@@ -52,6 +52,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from a2catvn_jax.config import ConfigError, load_config, to_dict
+from a2catvn_jax.plots import smooth
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SCALES = ("cpu", "paper")
@@ -242,17 +243,6 @@ def total_updates(cfg) -> int:
 
 
 # -- statistics -------------------------------------------------------------------------
-
-
-def smooth(y: np.ndarray, k: int) -> np.ndarray:
-    """Running mean over the last k finite values (NaN entries are skipped)."""
-    out = np.full(len(y), np.nan)
-    for i in range(len(y)):
-        window = y[max(0, i - k + 1) : i + 1]
-        window = window[np.isfinite(window)]
-        if window.size:
-            out[i] = window.mean()
-    return out
 
 
 def standard_error(values: np.ndarray, axis: int = 0) -> np.ndarray:

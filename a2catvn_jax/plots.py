@@ -20,7 +20,7 @@ LABELS = {"success_rate": "success rate", "episode_length": "episode length", "s
           "episode_return": "episode return", "loss/total": "total loss"}
 
 
-def _smooth(y: np.ndarray, k: int) -> np.ndarray:
+def smooth(y: np.ndarray, k: int) -> np.ndarray:
     """Running mean over the last k finite values (NaN rows are skipped)."""
     out = np.full_like(y, np.nan)
     for i in range(len(y)):
@@ -31,7 +31,7 @@ def _smooth(y: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def plot_runs(workdirs, out, metrics=METRICS, smooth: int = 5, labels=None, title=None):
+def plot_runs(workdirs, out, metrics=METRICS, window: int = 5, labels=None, title=None):
     """Write a PNG of `metrics` against frames for each run directory."""
     import matplotlib
 
@@ -45,7 +45,7 @@ def plot_runs(workdirs, out, metrics=METRICS, smooth: int = 5, labels=None, titl
         label = labels[i] if labels else Path(workdir).name
         for ax, key in zip(axes[0], metrics):
             y = np.array([r.get(key, np.nan) for r in rows], float)
-            ax.plot(frames, _smooth(y, smooth), label=label)
+            ax.plot(frames, smooth(y, window), label=label)
     for ax, key in zip(axes[0], metrics):
         ax.set_xlabel("frames")
         ax.set_title(LABELS.get(key, key))
