@@ -12,12 +12,13 @@ import shutil
 import subprocess
 import sys
 
+import imageio.v2 as imageio
 import imageio.v3 as iio
 import numpy as np
 import pytest
 
 from a2catvn_jax.config import ConfigError, load_config
-from a2catvn_jax.evaluate import HELD_OUT_OFFSET, default_output, evaluate, main, make_env
+from a2catvn_jax.evaluate import HELD_OUT_OFFSET, default_output, evaluate, main, make_env, write_video
 from a2catvn_jax.scenes import mjcf
 from a2catvn_jax.train import train
 from a2catvn_jax.world import make_scenes
@@ -81,6 +82,19 @@ def test_video_has_three_panels(cli_result):
     frames = iio.imread(video, index=None)
     assert frames.ndim == 4 and len(frames) >= 2
     assert frames.shape[1:3] == (128, 3 * 128)  # 16 px images upscaled 8x: observation | target | map
+
+
+def test_mp4_video_holds_the_same_frames(cli_result, tmp_path):
+    _, gif = cli_result
+    frames = iio.imread(gif, index=None)[..., :3]
+    mp4 = tmp_path / "agent.mp4"
+    write_video(mp4, list(frames))
+    with imageio.get_reader(mp4) as reader:
+        back = np.stack([frame for frame in reader.iter_data()])
+    assert back.shape == frames.shape
+    # lossy H.264: close to the source on average, and the frames still differ from each other as they did
+    assert np.abs(back.astype(float) - frames).mean() < 8.0
+    assert np.abs(back[-1].astype(float) - back[0]).mean() > 0.5 * np.abs(frames[-1].astype(float) - frames[0]).mean()
 
 
 def test_held_out_houses(run, cli_result):
