@@ -160,9 +160,18 @@ class NavEnv:
 
     def render_pose(self, scene_index: int, pose) -> render.Frame:
         """RGB, depth, geom ids and classes seen from pose (x, y, yaw, tilt) in a scene."""
-        pose = jnp.asarray(pose, jnp.float32)[None]
-        frame = self._render(jnp.array([scene_index], jnp.int32), pose)
+        frame = self.render_poses(jnp.array([scene_index]), jnp.asarray(pose)[None])
         return jax.tree_util.tree_map(lambda a: a[0], frame)
+
+    def render_poses(self, scenes, poses) -> render.Frame:
+        """Frames [N] seen from poses [N, 4] in scenes [N]."""
+        return self._render(jnp.asarray(scenes, jnp.int32), jnp.asarray(poses, jnp.float32))
+
+    def sample_starts(self, keys, scenes, complexity):
+        """(goal [N], pose [N, 4], start distance [N]) of new episodes in scenes [N], one per key,
+        drawn as `reset` draws them at curriculum complexity [N]."""
+        _, start = jax.vmap(self._sample_episode)(keys, jnp.asarray(scenes, jnp.int32), complexity)
+        return start
 
     def segmentation_rgb(self, classes):
         """The paper's encoding of class ids as colours evenly spread in hue: [..., 3] uint8."""

@@ -67,6 +67,7 @@ def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", e
 
     from a2catvn_jax.learner import DEPTH_SCALE
     from a2catvn_jax.networks import VN_HEADS, A2CATNet
+    from a2catvn_jax.world import SEGMENTATION_COLORS
 
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
@@ -75,7 +76,7 @@ def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", e
     env, learner = agent.env, agent.learner
     if not 0 <= env_index < env.num_envs:
         raise ValueError(f"env_index must be in [0, {env.num_envs}), got {env_index}")
-    colors = jnp.asarray(learner._colors)
+    colors = jnp.asarray(SEGMENTATION_COLORS, jnp.float32) / 255.0
 
     def as_rgb(seg):
         if agent.cfg.agent.segmentation_loss == "cross_entropy":

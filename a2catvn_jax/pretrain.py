@@ -54,10 +54,10 @@ def make_dataset(learner, size: int, key) -> dict:
         keys = jax.random.split(key, CHUNK + 1)
         scene = (first + jnp.arange(CHUNK, dtype=jnp.int32)) % S
         tau = jnp.ones((CHUNK,), jnp.float32)
-        _, (goal, pose, _) = jax.vmap(env._sample_episode)(keys[1:], scene, tau)
+        goal, pose, _ = env.sample_starts(keys[1:], scene, tau)
         tilt = jax.random.choice(keys[0], tilts, (CHUNK,))
         pose = pose.at[:, 3].set(tilt)
-        frame = env._render(scene, pose)
+        frame = env.render_poses(scene, pose)
         return {"rgb": frame.rgb, "target": scene * learner.goals_per_scene + goal.astype(jnp.int32),
                 **learner.frame_targets({"depth": frame.depth, "segmentation": frame.cls})}
 
