@@ -179,16 +179,21 @@ def plan(exp: Experiment, scale: str, seeds: Sequence[int], root, overrides: Seq
     return runs
 
 
-def _finished(workdir: Path, total_updates: int) -> bool:
+def _saved_updates(workdir: Path) -> list[int]:
+    """The update counts of the checkpoints in `workdir` (none if it has no checkpoint yet)."""
     from a2catvn_jax.checkpoint import Checkpointer
 
     if not (workdir / "checkpoints").is_dir():
-        return False
+        return []
     ckpt = Checkpointer(workdir, create=False)
     try:
-        return max(ckpt.steps(), default=0) >= total_updates
+        return ckpt.steps()
     finally:
         ckpt.close()
+
+
+def _finished(workdir: Path, total_updates: int) -> bool:
+    return max(_saved_updates(workdir), default=0) >= total_updates
 
 
 def train_run(run: Run, log: Callable[[str], None]) -> float:
@@ -201,7 +206,8 @@ def train_run(run: Run, log: Callable[[str], None]) -> float:
     t0 = time.perf_counter()
     run.workdir.mkdir(parents=True, exist_ok=True)
     (run.workdir / "variant.json").write_text(json.dumps(dataclasses.asdict(run.variant), indent=1) + "\n")
-    resume = (run.workdir / "checkpoints").is_dir()
+    # a run stopped before its first checkpoint starts again from scratch
+    resume = bool(_saved_updates(run.workdir))
     init_from = None
     if run.variant.pretrain and not resume:
         init_from = run.workdir / "pretrain"

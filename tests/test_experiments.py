@@ -85,6 +85,9 @@ def tiny_experiment(tmp_path_factory):
         (ex.Variant("full"), ex.Variant("no depth", ("train.loss_weights.depth=0",)), ex.Variant("full again")),
         threshold=0.9, cpu_threshold=0.5, evaluations=("train",),
     )
+    # "no depth" was stopped before its first checkpoint: an empty checkpoint directory
+    stopped = next(run for run in ex.plan(exp, "cpu", [3], root / "runs", TINY) if run.variant.label == "no depth")
+    (stopped.workdir / "checkpoints").mkdir(parents=True)
     lines = []
     summary = ex.run_experiment(exp, scale="cpu", seeds=[3], episodes=2, root=root / "runs", docs=root / "docs",
                                 overrides=TINY, command="tiny", compilation_cache=False, log=lines.append)
@@ -93,7 +96,9 @@ def tiny_experiment(tmp_path_factory):
 
 def test_tiny_experiment_reports(tiny_experiment):
     exp, root, summary, lines = tiny_experiment
-    assert sum(line.startswith("training ") for line in lines) == 2  # "full again" reuses "full"
+    # "full again" reuses "full"; "no depth", stopped before any checkpoint, starts from scratch
+    assert sorted(line.split(",")[0] for line in lines if line.startswith(("training ", "resuming "))) == [
+        "training full", "training no depth"]
     assert set(summary["variants"]) == {"full", "no depth", "full again"}
     full, again = summary["variants"]["full"], summary["variants"]["full again"]
     assert full["workdirs"] == again["workdirs"] and full["seeds"] == [3]
