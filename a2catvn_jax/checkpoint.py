@@ -186,3 +186,14 @@ def _short(message: str, limit: int = 300) -> str:
     """The first line of an error message, at most `limit` characters."""
     line = message.strip().splitlines()[0] if message.strip() else ""
     return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+def quiet_abandoned_reads() -> None:
+    """For a command exiting on a `CheckpointError`: a failed restore leaves orbax's other
+    asynchronous reads unfinished, and Python reports each of them (a "coroutine was never
+    awaited" warning, an asyncio "Task exception was never retrieved" traceback) when it is
+    collected, often at exit. Silence those reports so the error stays the only output."""
+    import logging
+
+    warnings.filterwarnings("ignore", message=r"coroutine .* was never awaited", category=RuntimeWarning)
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL)
