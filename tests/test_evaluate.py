@@ -84,6 +84,7 @@ def test_video_has_three_panels(cli_result):
     assert frames.shape[1:3] == (128, 3 * 128)  # 16 px images upscaled 8x: observation | target | map
 
 
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # imageio-ffmpeg runs ffmpeg in a subprocess
 def test_mp4_video_holds_the_same_frames(cli_result, tmp_path):
     _, gif = cli_result
     frames = iio.imread(gif, index=None)[..., :3]
