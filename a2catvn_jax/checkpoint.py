@@ -143,7 +143,7 @@ class Checkpointer:
 
     def _restore_state(self, path, step: int, args):
         previous_hook = sys.unraisablehook
-        sys.unraisablehook = _quiet_abandoned_reads(previous_hook)
+        sys.unraisablehook = _skip_closed_loop_errors(previous_hook)
         try:
             with warnings.catch_warnings():  # orbax warns that no sharding was given: arrays go to the default device
                 warnings.simplefilter("ignore", UserWarning)
@@ -151,6 +151,7 @@ class Checkpointer:
             sys.unraisablehook = previous_hook
         except Exception as e:  # noqa: BLE001
             # The hook stays: reads abandoned by the failed restore may still finish later.
+            silence_abandoned_reads()
             raise CheckpointError(
                 f"{path}: the checkpoint is corrupt or does not match this configuration "
                 f"({type(e).__name__}: {_short(str(e))})"
@@ -169,7 +170,7 @@ class Checkpointer:
         self.manager.close()
 
 
-def _quiet_abandoned_reads(previous):
+def _skip_closed_loop_errors(previous):
     """An unraisable-exception hook that drops the 'Event loop is closed' errors of array
     reads that a failed orbax restore left running, and passes everything else on."""
 
@@ -182,18 +183,35 @@ def _quiet_abandoned_reads(previous):
     return hook
 
 
+def silence_abandoned_reads() -> None:
+    """After a failed orbax restore: its other asynchronous reads were abandoned, and Python
+    reports each when it is collected, often at exit, as a "coroutine ... was never awaited"
+    warning or an asyncio "Task exception was never retrieved" traceback raised in orbax.
+    Drop those reports, so that the restore's error is all a user sees."""
+    import logging
+
+    warnings.filterwarnings("ignore", message=r"coroutine .* was never awaited", category=RuntimeWarning)
+    asyncio_log = logging.getLogger("asyncio")
+    if not any(isinstance(f, _AbandonedOrbaxTasks) for f in asyncio_log.filters):
+        asyncio_log.addFilter(_AbandonedOrbaxTasks())
+
+
+class _AbandonedOrbaxTasks:
+    """A logging filter: drops "Task exception was never retrieved" records of orbax tasks."""
+
+    def filter(self, record) -> bool:
+        if not record.getMessage().startswith("Task exception was never retrieved") or not record.exc_info:
+            return True
+        tb = record.exc_info[2]
+        while tb is not None:
+            if "orbax" in tb.tb_frame.f_code.co_filename:
+                return False
+            tb = tb.tb_next
+        return True
+
+
 def _short(message: str, limit: int = 300) -> str:
     """The first line of an error message, at most `limit` characters."""
     line = message.strip().splitlines()[0] if message.strip() else ""
     return line if len(line) <= limit else line[: limit - 3] + "..."
 
-
-def quiet_abandoned_reads() -> None:
-    """For a command exiting on a `CheckpointError`: a failed restore leaves orbax's other
-    asynchronous reads unfinished, and Python reports each of them (a "coroutine was never
-    awaited" warning, an asyncio "Task exception was never retrieved" traceback) when it is
-    collected, often at exit. Silence those reports so the error stays the only output."""
-    import logging
-
-    warnings.filterwarnings("ignore", message=r"coroutine .* was never awaited", category=RuntimeWarning)
-    logging.getLogger("asyncio").setLevel(logging.CRITICAL)

@@ -372,7 +372,7 @@ def main(argv=None) -> None:
     if args.video is not None and Path(args.video).suffix.lower() not in (".gif", ".mp4"):
         parser.error(f"--video must end in .gif or .mp4, got {args.video!r}")
 
-    from a2catvn_jax.checkpoint import CheckpointError, quiet_abandoned_reads
+    from a2catvn_jax.checkpoint import CheckpointError
 
     try:
         result = evaluate(args.workdir, args.episodes, step=args.step, houses=args.houses, policy=args.policy,
@@ -381,7 +381,6 @@ def main(argv=None) -> None:
     except ValueError as e:  # configuration errors included
         parser.error(str(e))
     except (CheckpointError, EvaluationError) as e:
-        quiet_abandoned_reads()
         message = str(e)  # orbax's messages can list a whole checkpoint tree
         parser.exit(2, f"error: {message if len(message) <= MAX_MESSAGE else message[:MAX_MESSAGE] + ' ...'}\n")
     out = Path(args.out) if args.out else default_output(args.workdir, result)

@@ -153,6 +153,9 @@ def load_matching(params, pretrained_dir):
         with ocp.StandardCheckpointer() as checkpointer:
             saved = checkpointer.restore(path.absolute())
     except Exception as e:  # noqa: BLE001 - orbax raises many kinds
+        from a2catvn_jax.checkpoint import silence_abandoned_reads
+
+        silence_abandoned_reads()
         raise PretrainError(f"{path}: cannot read the pre-trained parameters ({type(e).__name__})") from None
     flat_saved = {jax.tree_util.keystr(p): v for p, v in jax.tree_util.tree_leaves_with_path(saved)}
     loaded, kept = [], []

@@ -173,7 +173,7 @@ def main(argv=None) -> None:
     if args.init_from and args.resume:
         parser.error("--init-from starts a new run; it cannot be combined with --resume")
 
-    from a2catvn_jax.checkpoint import CHECKPOINT_DIR, CheckpointError, quiet_abandoned_reads, read_run_config
+    from a2catvn_jax.checkpoint import CHECKPOINT_DIR, CheckpointError, read_run_config
     from a2catvn_jax.pretrain import PretrainError
 
     try:
@@ -199,14 +199,12 @@ def main(argv=None) -> None:
     except ConfigError as e:
         parser.error(str(e))
     except CheckpointError as e:
-        quiet_abandoned_reads()
         parser.exit(2, f"error: {e}\n")
 
     try:
         train(cfg, workdir, resume=args.resume, max_updates=args.updates, progress=not args.no_progress,
               init_from=args.init_from)
     except (CheckpointError, TrainingError, PretrainError) as e:
-        quiet_abandoned_reads()
         parser.exit(1, f"error: {e}\n")
 
 

@@ -110,6 +110,37 @@ def test_missing_and_corrupt_checkpoints(tmp_path, straight, capsys):
     assert "corrupt" in capsys.readouterr().err
 
 
+def test_silenced_reports_are_only_those_of_abandoned_orbax_reads():
+    import logging
+    import sys
+    import warnings
+
+    from a2catvn_jax.checkpoint import silence_abandoned_reads
+
+    def task_record(filename):
+        code = {}
+        exec(compile("def read():\n    raise ValueError('corrupt')\n", filename, "exec"), code)
+        try:
+            code["read"]()
+        except ValueError:
+            exc_info = sys.exc_info()
+        return logging.LogRecord("asyncio", logging.ERROR, __file__, 1, "Task exception was never retrieved\nfuture: ...",
+                                 None, exc_info)
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        silence_abandoned_reads()
+        silence_abandoned_reads()
+        warnings.warn("coroutine 'Store._get_array_metadatas' was never awaited", RuntimeWarning)
+        warnings.warn("something else", RuntimeWarning)
+    assert [str(w.message) for w in caught] == ["something else"]
+    log = logging.getLogger("asyncio")
+    assert sum(type(f).__name__ == "_AbandonedOrbaxTasks" for f in log.filters) == 1
+    assert not log.filter(task_record("/site-packages/orbax/checkpoint/_src/serialization/serialization.py"))
+    assert log.filter(task_record("/site-packages/somelib/io.py"))
+    assert log.filter(logging.LogRecord("asyncio", logging.ERROR, __file__, 1, "Unclosed event loop", None, None))
+
+
 def test_nonfinite_loss_stops_and_keeps_last_checkpoint(tmp_path):
     cfg = _cfg("train.learning_rate=1e38", "train.lr_schedule=constant")
     with pytest.raises(TrainingError, match="non-finite"):
