@@ -45,6 +45,7 @@ import math
 import os
 import platform
 import re
+import sys
 import time
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -186,22 +187,18 @@ def _saved_updates(workdir: Path) -> list[int]:
         ckpt.close()
 
 
-def _finished(workdir: Path, total_updates: int) -> bool:
-    return max(_saved_updates(workdir), default=0) >= total_updates
-
-
 def train_run(run: Run, log: Callable[[str], None]) -> float:
     """Train `run` to its end (resuming it if it was interrupted); returns the seconds it took now."""
     from a2catvn_jax.pretrain import PRETRAINED_DIR, pretrain
     from a2catvn_jax.train import train
 
-    if _finished(run.workdir, total_updates(run.cfg)):
+    saved = _saved_updates(run.workdir)
+    if max(saved, default=0) >= total_updates(run.cfg):
         return 0.0
     t0 = time.perf_counter()
     run.workdir.mkdir(parents=True, exist_ok=True)
     (run.workdir / "variant.json").write_text(json.dumps(dataclasses.asdict(run.variant), indent=1) + "\n")
-    # a run stopped before its first checkpoint starts again from scratch
-    resume = bool(_saved_updates(run.workdir))
+    resume = bool(saved)  # a run stopped before its first checkpoint starts again from scratch
     init_from = None
     if run.variant.pretrain and not resume:
         init_from = run.workdir / "pretrain"
@@ -261,15 +258,18 @@ def t_interval(values: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarra
     mean = values.mean(axis=axis)
     if n < 2:
         return mean, np.zeros_like(mean)
-    sem = values.std(axis=axis, ddof=1) / math.sqrt(n)
-    return mean, stats.t.ppf(0.975, n - 1) * sem
+    return mean, stats.t.ppf(0.975, n - 1) * standard_error(values, axis)
 
 
-def curves(run: Run) -> dict:
-    """frames, and the smoothed success rate and episode length of a run's training log."""
+def training_log(run: Run) -> list[dict]:
+    """The rows of the run's metrics.jsonl."""
     from a2catvn_jax.logger import read_jsonl
 
-    rows = read_jsonl(run.workdir / "metrics.jsonl")
+    return read_jsonl(run.workdir / "metrics.jsonl")
+
+
+def curves(rows: list[dict]) -> dict:
+    """frames, and the smoothed success rate, episode length and SPL of a training log."""
     k = max(1, round(SMOOTH_FRACTION * len(rows)))
     frames = np.array([r["frames"] for r in rows], float)
     out = {"frames": frames}
@@ -284,10 +284,8 @@ def frames_to_threshold(curve: dict, threshold: float) -> Optional[float]:
     return float(curve["frames"][hit[0]]) if hit.size else None
 
 
-def final_success(run: Run) -> float:
-    from a2catvn_jax.logger import read_jsonl
-
-    rows = read_jsonl(run.workdir / "metrics.jsonl")
+def final_success(rows: list[dict]) -> float:
+    """The mean training success rate over the last FINAL_FRACTION of a training log."""
     tail = rows[-max(1, round(FINAL_FRACTION * len(rows))):]
     values = [r["success_rate"] for r in tail if r.get("success_rate") is not None and math.isfinite(r["success_rate"])]
     return float(np.mean(values)) if values else math.nan
@@ -298,7 +296,8 @@ def summarise(exp: Experiment, runs: list[Run], evals: dict, baseline: dict, thr
     variants = {}
     for variant in exp.variants:
         mine = [r for r in runs if r.variant == variant]
-        cs = [curves(r) for r in mine]
+        logs = [training_log(r) for r in mine]
+        cs = [curves(rows) for rows in logs]
         n = min(len(c["frames"]) for c in cs)
         entry = {"seeds": [r.seed for r in mine], "workdirs": [str(r.workdir) for r in mine],
                  "frames": cs[0]["frames"][:n].tolist()}
@@ -308,7 +307,7 @@ def summarise(exp: Experiment, runs: list[Run], evals: dict, baseline: dict, thr
             entry[key] = {"mean": mean.tolist(), "sem": standard_error(stacked).tolist(),
                           "half_width_95": half.tolist()}
         entry["frames_to_threshold"] = [frames_to_threshold(c, threshold) for c in cs]
-        entry["final_success"] = [final_success(r) for r in mine]
+        entry["final_success"] = [final_success(rows) for rows in logs]
         entry["training_seconds"] = [training_seconds(r) for r in mine]
         entry["eval"] = {h: {m: [evals[(str(r.workdir), h)][m] for r in mine] for m in ("success_rate", "spl")}
                          for h in exp.evaluations}
@@ -541,7 +540,7 @@ def main(argv=None) -> None:
         parser.error("name an experiment (or --list)")
     if args.name not in EXPERIMENTS:
         parser.error(f"unknown experiment {args.name!r}; choose one of {', '.join(EXPERIMENTS)}")
-    command = "python -m a2catvn_jax.experiments " + " ".join(argv if argv is not None else os.sys.argv[1:])
+    command = "python -m a2catvn_jax.experiments " + " ".join(argv if argv is not None else sys.argv[1:])
     from a2catvn_jax.checkpoint import CheckpointError
     from a2catvn_jax.pretrain import PretrainError
     from a2catvn_jax.train import TrainingError
