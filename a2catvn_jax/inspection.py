@@ -125,8 +125,10 @@ def episodes(rec: dict) -> list[tuple[int, int]]:
 
 
 def _downsized(image: np.ndarray, size: int) -> np.ndarray:
-    f = image.shape[0] // size
-    return image.reshape(size, f, size, f, *image.shape[2:]).mean(axis=(1, 3))
+    """An [H, W, ...] ground-truth image averaged down to `size` rows, as the losses see it."""
+    from a2catvn_jax.losses import downsize_mean
+
+    return np.asarray(downsize_mean(image[None], image.shape[0] // size)[0])
 
 
 def prediction_figure(agent: Agent, rec: dict, t: int):
