@@ -9,12 +9,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import nbclient
+import nbformat
 import pytest
 
-nbformat = pytest.importorskip("nbformat")
-nbclient = pytest.importorskip("nbclient")
-
-from tiny import TINY_LEARNER  # noqa: E402
+from tiny import TINY_LEARNER
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = TINY_LEARNER + ["env.scene.num_scenes=1", "env.max_episode_steps=12", "train.log_every=1"]
