@@ -14,9 +14,7 @@ Typical use::
 
     cfg = load_config("configs/default.yaml", ["env.num_envs=32", "env.render.culling=false"])
 
-    parser = argparse.ArgumentParser()
-    add_config_args(parser)                  # --config PATH, --set KEY=VALUE ...
-    cfg = config_from_args(parser.parse_args())
+The command lines read `--config` and `--set` through `a2catvn_jax.cli`.
 
 Value checks live in each dataclass's `validate(self, path)` method, called by
 `from_dict` right after the section is built (sub-sections are validated before their
@@ -30,7 +28,6 @@ floats rather than strings. Duplicate keys in a mapping are an error.
 
 from __future__ import annotations
 
-import argparse
 import copy
 import dataclasses
 import difflib
@@ -42,9 +39,12 @@ import re
 import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal, Optional, Union, get_args, get_origin, get_type_hints
 
 import yaml
+
+from a2catvn_jax.errors import UserError
 
 __all__ = [
     "ConfigError",
@@ -63,12 +63,13 @@ __all__ = [
     "apply_overrides",
     "parse_override",
     "save_config",
-    "add_config_args",
-    "config_from_args",
 ]
 
 
-class ConfigError(ValueError):
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # the YAML files of a source checkout
+
+
+class ConfigError(ValueError, UserError):
     """Invalid configuration: unknown key, wrong type, bad value, bad file or override.
 
     `key` is the full dotted key the error is about, or None when it concerns a file
@@ -713,40 +714,3 @@ def save_config(cfg: Any, path: str | os.PathLike) -> None:
     with open(path, "w", encoding="utf-8") as fh:
         fh.write("# a2catvn_jax configuration (written by save_config)\n")
         fh.write(text)
-
-
-# ---------------------------------------------------------------------------- argparse
-
-
-def add_config_args(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add `--config PATH` and `--set KEY=VALUE [KEY=VALUE ...]` (repeatable) to `parser`.
-
-    Parsed into `args.config` (str or None) and `args.overrides` (list of lists).
-    Because `--set` takes several values, put positional arguments before it or
-    separate them with `--`.
-    """
-    group = parser.add_argument_group("configuration")
-    group.add_argument(
-        "--config", metavar="PATH", default=None, help="YAML config file (may list only some keys)"
-    )
-    group.add_argument(
-        "--set",
-        dest="overrides",
-        metavar="KEY=VALUE",
-        nargs="+",
-        action="append",
-        default=[],
-        help="override config keys, e.g. --set env.num_envs=32 env.render.culling=false (repeatable)",
-    )
-    return parser
-
-
-def config_from_args(args: argparse.Namespace, *, schema: type = Config) -> Any:
-    """Build the config from a namespace parsed with `add_config_args`."""
-    overrides: list[str] = []
-    for item in getattr(args, "overrides", None) or []:
-        if isinstance(item, str):
-            overrides.append(item)
-        else:
-            overrides.extend(item)
-    return load_config(getattr(args, "config", None), overrides, schema=schema)

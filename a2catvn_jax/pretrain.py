@@ -2,189 +2,30 @@
 
     python -m a2catvn_jax.pretrain [--config FILE] --workdir DIR [--set KEY=VALUE ...]
 
-Generates `pretrain.dataset_size` observations at random poses (free cells of the
-training scenes, random heading and camera tilt) with their depth and segmentation
-ground truth, each paired with a random target image of its scene, and trains the
-network's conv base and its depth / observation-segmentation / target-segmentation
-heads on them with Adam for `pretrain.epochs` epochs (the losses and weights of
-training: `train.loss_weights.{depth,segmentation,target_segmentation}`). One
-jit-compiled step serves every batch.
-
-The work directory gets `config.yaml`, `pretrain_metrics.jsonl` (one row per epoch)
-and the trained parameters (conv1-conv4 and the heads) as an orbax checkpoint in
-`pretrained/`. Training starts from them
-with `python -m a2catvn_jax.train ... --init-from DIR`, which loads the parameters
-whose names and shapes match and says which.
+Renders `pretrain.dataset_size` observations at random poses in the training scenes
+with their depth and segmentation, trains the conv base and the depth / segmentation
+heads on them with Adam (`pretrain.*` keys) and saves those layers in DIR/pretrained/.
+Training starts from them with `python -m a2catvn_jax.train ... --init-from DIR`,
+which loads the parameters whose names and shapes match and says which.
 """
 
 from __future__ import annotations
 
 import argparse
-import functools
-import time
-from pathlib import Path
 
-import numpy as np
-
-from a2catvn_jax.config import ConfigError, add_config_args, config_from_args, save_config
-
-PRETRAINED_DIR = "pretrained"
-TRAINED_LAYERS = ("conv1", "conv2", "conv3", "conv4", "vn")  # what the pre-training losses reach
-CHUNK = 64  # dataset samples rendered per compiled call
-
-
-class PretrainError(RuntimeError):
-    """Pre-training cannot run as configured, or a pre-trained directory cannot be used."""
-
-
-def make_dataset(learner, size: int, key) -> dict:
-    """`size` samples: rgb [N, H, W, 3] uint8, target [N] (target index), and the
-    depth / segmentation ground truth at auxiliary resolution of the losses that are on."""
-    import jax
-    import jax.numpy as jnp
-
-    env = learner.env
-    S = env.num_scenes
-    max_tilt = float(np.deg2rad(env.cfg.max_tilt_deg)) if "tilt_up" in env.action_names else 0.0
-    tilt_steps = np.deg2rad(30.0) * np.arange(-4, 5)
-    tilts = jnp.asarray(tilt_steps[np.abs(tilt_steps) <= max_tilt + 1e-6], jnp.float32)
-
-    @jax.jit
-    def chunk(key, first):
-        keys = jax.random.split(key, CHUNK + 1)
-        scene = (first + jnp.arange(CHUNK, dtype=jnp.int32)) % S
-        tau = jnp.ones((CHUNK,), jnp.float32)
-        goal, pose, _ = env.sample_starts(keys[1:], scene, tau)
-        tilt = jax.random.choice(keys[0], tilts, (CHUNK,))
-        pose = pose.at[:, 3].set(tilt)
-        frame = env.render_poses(scene, pose)
-        return {"rgb": frame.rgb, "target": scene * learner.goals_per_scene + goal.astype(jnp.int32),
-                **learner.frame_targets({"depth": frame.depth, "segmentation": frame.cls})}
-
-    parts = []
-    for i, k in enumerate(jax.random.split(key, -(-size // CHUNK))):
-        parts.append(jax.device_get(chunk(k, i * CHUNK)))
-    return {name: np.concatenate([p[name] for p in parts])[:size] for name in parts[0]}
-
-
-def pretrain(cfg, workdir, *, log=None) -> dict:
-    """Pre-train in `workdir`; returns the parameters."""
-    import jax
-    import optax
-    import orbax.checkpoint as ocp
-
-    from a2catvn_jax.learner import Learner
-    from a2catvn_jax.logger import MetricsWriter
-
-    log = log or functools.partial(print, flush=True)
-    w = cfg.train.loss_weights
-    if w.depth == 0 and w.segmentation == 0 and w.target_segmentation == 0:
-        raise PretrainError("pre-training needs a non-zero train.loss_weights.depth, segmentation or target_segmentation")
-    workdir = Path(workdir)
-    if (workdir / PRETRAINED_DIR).exists():
-        raise PretrainError(f"{workdir / PRETRAINED_DIR} already exists; choose another --workdir")
-    pc = cfg.pretrain
-    learner = Learner(cfg)
-    key = jax.random.PRNGKey(cfg.seed)
-    k_params, k_data, k_order = jax.random.split(key, 3)
-    t0 = time.perf_counter()
-    data = make_dataset(learner, pc.dataset_size, k_data)
-    log(f"dataset: {pc.dataset_size} observations in {learner.env.num_scenes} scene(s) in {time.perf_counter() - t0:.1f} s")
-
-    params = learner.init_params(k_params)
-    optimizer = optax.adam(pc.learning_rate)
-    opt_state = optimizer.init(params)
-
-    def loss_fn(params, batch):
-        from a2catvn_jax.networks import A2CATNet
-
-        target_feats = learner.target_features(params)
-        conv4, _ = learner.net.apply(params, batch["rgb"], target_feats[batch["target"]], method=A2CATNet.encode)
-        terms = learner.vn_losses(params, conv4[None], {k: v[None] for k, v in batch.items()}, batch["target"][None])
-        return sum(getattr(w, k) * v for k, v in terms.items()), terms
-
-    @jax.jit
-    def step(params, opt_state, batch):
-        (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch)
-        updates, opt_state = optimizer.update(grads, opt_state, params)
-        return optax.apply_updates(params, updates), opt_state, dict(terms, total=loss)
-
-    writer = MetricsWriter(workdir, tensorboard=False, name="pretrain_metrics")
-    save_config(cfg, workdir / "config.yaml")
-    n = pc.dataset_size
-    batches = max(1, n // pc.batch_size)
-    rng = np.random.default_rng(int(jax.random.randint(k_order, (), 0, 2**31 - 1)))
-    try:
-        for epoch in range(1, pc.epochs + 1):
-            order = rng.permutation(n)
-            sums, t0 = {}, time.perf_counter()
-            for b in range(batches):
-                idx = order[b * pc.batch_size : (b + 1) * pc.batch_size]
-                params, opt_state, terms = step(params, opt_state, {k: v[idx] for k, v in data.items()})
-                for k, v in terms.items():
-                    sums[k] = sums.get(k, 0.0) + v
-            row = {"epoch": epoch, **{f"loss/{k}": float(v) / batches for k, v in sums.items()},
-                   "seconds": time.perf_counter() - t0}
-            if not np.isfinite(row["loss/total"]):
-                raise PretrainError(f"non-finite loss in epoch {epoch}; nothing was saved")
-            writer.write(row)
-            log(f"epoch {epoch}/{pc.epochs}: " + ", ".join(f"{k[5:]} {v:.4f}" for k, v in row.items() if k.startswith("loss/")))
-    finally:
-        writer.close()
-    trained = {"params": {k: v for k, v in params["params"].items() if k in TRAINED_LAYERS}}
-    with ocp.StandardCheckpointer() as checkpointer:
-        checkpointer.save((workdir / PRETRAINED_DIR).absolute(), trained)
-    log(f"wrote the parameters of {', '.join(trained['params'])} to {workdir / PRETRAINED_DIR}")
-    return params
-
-
-def load_matching(params, pretrained_dir):
-    """`params` with every array whose path and shape match one in the pre-trained
-    checkpoint of `pretrained_dir` (a pretrain work directory) replaced by it.
-
-    Returns (params, loaded paths, kept paths)."""
-    import jax
-    import orbax.checkpoint as ocp
-
-    path = Path(pretrained_dir) / PRETRAINED_DIR
-    if not path.is_dir():
-        raise PretrainError(f"{pretrained_dir}: no pre-trained parameters (missing {PRETRAINED_DIR}/)")
-    try:
-        with ocp.StandardCheckpointer() as checkpointer:
-            saved = checkpointer.restore(path.absolute())
-    except Exception as e:  # noqa: BLE001 - orbax raises many kinds
-        from a2catvn_jax.checkpoint import silence_abandoned_reads
-
-        silence_abandoned_reads()
-        raise PretrainError(f"{path}: cannot read the pre-trained parameters ({type(e).__name__})") from None
-    flat_saved = {jax.tree_util.keystr(p): v for p, v in jax.tree_util.tree_leaves_with_path(saved)}
-    loaded, kept = [], []
-
-    def pick(p, x):
-        name = jax.tree_util.keystr(p)
-        v = flat_saved.get(name)
-        if v is not None and np.shape(v) == x.shape:
-            loaded.append(name)
-            return jax.numpy.asarray(v, x.dtype)
-        kept.append(name)
-        return x
-
-    return jax.tree_util.tree_map_with_path(pick, params), loaded, kept
+from a2catvn_jax import cli
+from a2catvn_jax.run.pretraining import pretrain
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.pretrain", description=__doc__.split("\n\n")[0])
-    add_config_args(parser)
+    cli.add_config_args(parser)
     parser.add_argument("--workdir", required=True, help="output directory")
     args = parser.parse_args(argv)
-    try:
-        cfg = config_from_args(args)
-    except ConfigError as e:
-        parser.error(str(e))
-    try:
+    with cli.errors(parser, code=2):
+        cfg = cli.config_from_args(args)
+    with cli.errors(parser, code=1):
         pretrain(cfg, args.workdir)
-    except PretrainError as e:
-        parser.exit(1, f"error: {e}\n")
 
 
 if __name__ == "__main__":

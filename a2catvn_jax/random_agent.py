@@ -16,45 +16,25 @@ import time
 import jax
 import numpy as np
 
-from a2catvn_jax.config import add_config_args, config_from_args
+from a2catvn_jax import cli
+from a2catvn_jax.env import NavEnv
+from a2catvn_jax.run.video import tile_frame, write_video
 
 QUICK = ["env.num_envs=16", "env.render.image_size=64", "env.scene.num_scenes=2", "env.goals_per_scene=4"]
 
 
-def _depth_image(depth: np.ndarray) -> np.ndarray:
-    d = np.clip(depth / 8.0, 0.0, 1.0)
-    return (np.stack([1 - d] * 3, -1) * 255).astype(np.uint8)
-
-
-def tile_frame(obs: dict, i: int = 0) -> np.ndarray:
-    """[h, 4w, 3] uint8: observation | target | depth | segmentation of agent i."""
-    parts = [
-        np.asarray(obs["rgb"][i]),
-        np.asarray(obs["target_rgb"][i]),
-        _depth_image(np.asarray(obs["depth"][i])),
-        np.asarray(obs["segmentation_rgb"][i]),
-    ]
-    return np.concatenate(parts, axis=1)
-
-
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.random_agent", description=__doc__.split("\n\n")[0])
-    add_config_args(parser)
+    cli.add_config_args(parser)
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--out", default="random_agent.gif", help="video file (.gif, or .mp4 with imageio-ffmpeg)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     if args.config is None:
         args.overrides = [QUICK] + list(args.overrides or [])
-    try:
-        cfg = config_from_args(args)
-    except ValueError as e:
-        parser.error(str(e))
-
-    from a2catvn_jax.env import NavEnv  # after argument errors, which need no JAX
-
     t0 = time.perf_counter()
-    env = NavEnv(cfg.env)
+    with cli.errors(parser, code=2):
+        env = NavEnv(cli.config_from_args(args).env)
     print(f"built {env.num_scenes} scene(s) in {time.perf_counter() - t0:.1f} s; actions: {', '.join(env.action_names)}")
     reset, step = jax.jit(env.reset), jax.jit(env.step)
     key = jax.random.PRNGKey(args.seed)
@@ -78,8 +58,6 @@ def main(argv=None) -> None:
     print(f"{args.steps} steps x {env.num_envs} agents in {dt:.1f} s ({args.steps * env.num_envs / dt:.0f} frames/s incl. compile)")
     print(f"episodes ended: {ended}, successes: {success}, mean length: {np.mean(lengths) if lengths else float('nan'):.1f}, "
           f"mean SPL: {np.mean(spls) if spls else float('nan'):.3f}")
-    from a2catvn_jax.evaluate import write_video
-
     scale = max(1, 256 // frames[0].shape[0])
     frames = [np.kron(f, np.ones((scale, scale, 1), np.uint8)) for f in frames]
     write_video(args.out, frames)

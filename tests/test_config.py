@@ -9,15 +9,14 @@ from pathlib import Path
 import pytest
 import yaml
 
+from a2catvn_jax.cli import add_config_args, config_from_args
 from a2catvn_jax.config import (
     Config,
     ConfigError,
     EnvConfig,
     RenderConfig,
     SceneConfig,
-    add_config_args,
     apply_overrides,
-    config_from_args,
     config_keys,
     from_dict,
     load_config,

@@ -20,9 +20,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from a2catvn_jax.config import ConfigError, load_config  # noqa: E402
 from a2catvn_jax.env import ACTION_SETS, NavEnv, State  # noqa: E402
-from a2catvn_jax.scenes.mjcf import geom_aabb  # noqa: E402
-from a2catvn_jax.scenes.spec import CLASS_ID, STRUCTURAL_CLASSES  # noqa: E402
-from a2catvn_jax.world import SEGMENTATION_COLORS  # noqa: E402
+from a2catvn_jax.env.scenes.mjcf import geom_aabb  # noqa: E402
+from a2catvn_jax.env.scenes.spec import CLASS_ID, STRUCTURAL_CLASSES  # noqa: E402
+from a2catvn_jax.env.world import SEGMENTATION_COLORS  # noqa: E402
 
 B = 32  # agents per batch
 T = 300  # steps per random rollout

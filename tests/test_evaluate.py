@@ -18,10 +18,13 @@ import numpy as np
 import pytest
 
 from a2catvn_jax.config import ConfigError, load_config
-from a2catvn_jax.evaluate import HELD_OUT_OFFSET, default_output, evaluate, main, make_env, write_video
-from a2catvn_jax.scenes import mjcf
-from a2catvn_jax.train import train
-from a2catvn_jax.world import make_scenes
+from a2catvn_jax.env.scenes import mjcf
+from a2catvn_jax.env.world import make_scenes
+from a2catvn_jax.evaluate import main
+from a2catvn_jax.run.evaluation import default_output, evaluate
+from a2catvn_jax.run.restore import HELD_OUT_OFFSET, make_env
+from a2catvn_jax.run.training import train
+from a2catvn_jax.run.video import write_video
 from tiny import TINY_LEARNER
 
 TINY = TINY_LEARNER + ["env.scene.num_scenes=1", "env.scene.kind=room", "env.max_episode_steps=20", "train.log_every=1"]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from a2catvn_jax import experiments as ex
+from a2catvn_jax.run import experiments as ex
 from tiny import TINY_LEARNER
 
 TINY = TINY_LEARNER + ["env.max_episode_steps=10", "train.total_frames=32", "train.log_every=1",

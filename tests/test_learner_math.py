@@ -23,13 +23,13 @@ import numpy as np
 import pytest
 import rlax
 
-from a2catvn_jax import losses, networks
-from a2catvn_jax import replay as replay_lib
+from a2catvn_jax.agent import losses, networks
+from a2catvn_jax.agent import replay as replay_lib
+from a2catvn_jax.agent.learner import REPLAY_FIELDS, Learner
+from a2catvn_jax.agent.networks import A2CATNet
 from a2catvn_jax.config import load_config
-from a2catvn_jax.learner import REPLAY_FIELDS, Learner
-from a2catvn_jax.networks import A2CATNet
-from a2catvn_jax.scenes.spec import NUM_CLASSES
-from a2catvn_jax.world import SEGMENTATION_COLORS
+from a2catvn_jax.env.scenes.spec import NUM_CLASSES
+from a2catvn_jax.env.world import SEGMENTATION_COLORS
 from tiny import TINY_LEARNER
 
 TINY = TINY_LEARNER + ["env.scene.num_scenes=1", "env.scene.grid=[1,1]"]

@@ -17,8 +17,8 @@ import pytest
 
 from a2catvn_jax.config import load_config
 from a2catvn_jax.env import NavEnv
-from a2catvn_jax.logger import read_jsonl
-from a2catvn_jax.train import train
+from a2catvn_jax.run.logger import read_jsonl
+from a2catvn_jax.run.training import train
 
 TASK = [
     "env.num_envs=16",

@@ -1,11 +1,11 @@
-"""Tests for the MuJoCo OpenGL reference renderer (a2catvn_jax.mujoco_gl)."""
+"""Tests for the MuJoCo OpenGL reference renderer (a2catvn_jax.bench.mujoco_gl)."""
 
 import os
 
 import numpy as np
 import pytest
 
-from a2catvn_jax import mujoco_gl as mgl
+from a2catvn_jax.bench import mujoco_gl as mgl
 
 _BACKEND = mgl.gl_backend_available()
 if _BACKEND is None:

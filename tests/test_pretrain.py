@@ -6,12 +6,12 @@ import jax
 import numpy as np
 import pytest
 
-from a2catvn_jax.checkpoint import Checkpointer
+from a2catvn_jax.agent.learner import Learner
 from a2catvn_jax.config import load_config
-from a2catvn_jax.learner import Learner
-from a2catvn_jax.logger import read_jsonl
-from a2catvn_jax.pretrain import PRETRAINED_DIR, PretrainError, load_matching, make_dataset, pretrain
-from a2catvn_jax.train import train
+from a2catvn_jax.run.checkpoint import Checkpointer
+from a2catvn_jax.run.logger import read_jsonl
+from a2catvn_jax.run.pretraining import PRETRAINED_DIR, PretrainError, load_matching, make_dataset, pretrain
+from a2catvn_jax.run.training import train
 from tiny import TINY_LEARNER
 
 TINY = TINY_LEARNER + [

@@ -17,10 +17,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from a2catvn_jax import camera, navgrid
-from a2catvn_jax.geometry import Geometry, pack, take
-from a2catvn_jax.render import CameraSpec, Frame, render, render_batch
-from a2catvn_jax.scenes import (
+from a2catvn_jax.env import camera, navgrid
+from a2catvn_jax.env.geometry import Geometry, pack, take
+from a2catvn_jax.env.render import CameraSpec, Frame, render, render_batch
+from a2catvn_jax.env.scenes import (
     AGENT_RADIUS,
     CLASS_ID,
     CLASS_NAMES,

@@ -13,7 +13,7 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from a2catvn_jax.scenes import (  # noqa: E402
+from a2catvn_jax.env.scenes import (  # noqa: E402
     AGENT_BODY,
     AGENT_CAMERA,
     CLASS_NAMES,
@@ -393,7 +393,7 @@ def test_class_from_name():
 def test_plot_topdown(tmp_path, houses):
     matplotlib = pytest.importorskip("matplotlib")
     matplotlib.use("Agg")
-    from a2catvn_jax.scenes.plot import save_topdown
+    from a2catvn_jax.env.scenes.plot import save_topdown
 
     out = save_topdown(houses[0], str(tmp_path / "top.png"), dpi=40)
     assert Path(out).stat().st_size > 1000

@@ -17,7 +17,7 @@ SCRIPT = textwrap.dedent(
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import Mesh
     from a2catvn_jax.config import load_config
-    from a2catvn_jax.learner import Learner
+    from a2catvn_jax.agent.learner import Learner
 
     cfg = load_config(None, ["env.num_envs=4", "env.render.image_size=16", "env.scene.num_scenes=1",
         "env.scene.grid=[1,1]", "env.goals_per_scene=2", "train.rollout_length=4", "train.replay_size=8",

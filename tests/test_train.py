@@ -15,10 +15,11 @@ import jax
 import numpy as np
 import pytest
 
-from a2catvn_jax.checkpoint import Checkpointer, CheckpointError
 from a2catvn_jax.config import load_config
-from a2catvn_jax.logger import read_jsonl
-from a2catvn_jax.train import TrainingError, main, train
+from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError
+from a2catvn_jax.run.logger import read_jsonl
+from a2catvn_jax.run.training import TrainingError, train
+from a2catvn_jax.train import main
 from tiny import TINY_LEARNER
 
 TINY = TINY_LEARNER + [
@@ -115,7 +116,7 @@ def test_silenced_reports_are_only_those_of_abandoned_orbax_reads():
     import sys
     import warnings
 
-    from a2catvn_jax.checkpoint import silence_abandoned_reads
+    from a2catvn_jax.run.checkpoint import silence_abandoned_reads
 
     def task_record(filename):
         code = {}
@@ -146,7 +147,7 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(tmp_path):
     with pytest.raises(TrainingError, match="non-finite"):
         train(cfg, tmp_path, max_updates=20, progress=False, log=lambda *_: None)
     ckpt = Checkpointer(tmp_path, create=False)
-    from a2catvn_jax.learner import Learner
+    from a2catvn_jax.agent.learner import Learner
 
     state, meta = ckpt.restore(jax.eval_shape(Learner(cfg).init, jax.random.PRNGKey(0)), cfg)
     assert all(np.all(np.isfinite(x)) for x in _leaves(state.params))

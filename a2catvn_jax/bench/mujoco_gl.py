@@ -65,7 +65,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from a2catvn_jax import camera
+from a2catvn_jax.env import camera
 
 __all__ = [
     "APT_HINT",

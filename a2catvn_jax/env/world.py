@@ -16,12 +16,12 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from a2catvn_jax import geometry as geometry_lib
-from a2catvn_jax import navgrid, render
 from a2catvn_jax.config import EnvConfig
-from a2catvn_jax.scenes import generate, mjcf
-from a2catvn_jax.scenes.mjcf import geom_aabb
-from a2catvn_jax.scenes.spec import STRUCTURAL_CLASSES, Scene, class_colors
+from a2catvn_jax.env import geometry as geometry_lib
+from a2catvn_jax.env import navgrid, render
+from a2catvn_jax.env.scenes import generate, mjcf
+from a2catvn_jax.env.scenes.mjcf import geom_aabb
+from a2catvn_jax.env.scenes.spec import STRUCTURAL_CLASSES, Scene, class_colors
 
 GOAL_KINDS = ("image", "room", "object")
 BODY_MARGIN = 0.1  # the agent's body reaches this far above its camera

@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from a2catvn_jax.scenes.spec import CLASS_NAMES, class_of_name
+from a2catvn_jax.env.scenes.spec import CLASS_NAMES, class_of_name
 
 # Intersection families: world-aligned boxes (a box whose rotation permutes the world
 # axes is one), oriented boxes, ellipsoids (spheres included) and capsules.

@@ -13,6 +13,7 @@ written under a different configuration (the differing keys are listed).
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import warnings
@@ -24,6 +25,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from a2catvn_jax.config import Config, ConfigError, from_dict, load_config, save_config, to_dict
+from a2catvn_jax.errors import UserError
 
 CONFIG_FILE = "config.yaml"
 CHECKPOINT_DIR = "checkpoints"
@@ -31,7 +33,7 @@ CHECKPOINT_DIR = "checkpoints"
 BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_checkpoints")
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(UserError, RuntimeError):
     """A checkpoint that is missing, unreadable or written under another configuration."""
 
 
@@ -115,14 +117,20 @@ class Checkpointer:
         self._check_shapes(path, abstract["params"], params)
         return params, meta
 
-    def _checked_meta(self, cfg: Optional[Config], step: Optional[int]):
-        steps = self.steps()
+    def resolve_step(self, step: Optional[int] = None) -> int:
+        """`step` if a checkpoint was written at that update, the latest one if None;
+        `CheckpointError` otherwise."""
+        steps = sorted(self.steps())
         if not steps:
             raise CheckpointError(f"{self.workdir}: no checkpoint found in {self.directory}")
         if step is None:
-            step = max(steps)
-        elif step not in steps:
-            raise CheckpointError(f"{self.workdir}: no checkpoint at update {step}; available: {sorted(steps)}")
+            return steps[-1]
+        if step not in steps:
+            raise CheckpointError(f"{self.workdir}: no checkpoint at update {step}; available: {steps}")
+        return step
+
+    def _checked_meta(self, cfg: Optional[Config], step: Optional[int]):
+        step = self.resolve_step(step)
         path = self.directory / str(step)
         try:
             meta = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
@@ -188,8 +196,6 @@ def silence_abandoned_reads() -> None:
     reports each when it is collected, often at exit, as a "coroutine ... was never awaited"
     warning or an asyncio "Task exception was never retrieved" traceback raised in orbax.
     Drop those reports, so that the restore's error is all a user sees."""
-    import logging
-
     warnings.filterwarnings("ignore", message=r"coroutine .* was never awaited", category=RuntimeWarning)
     asyncio_log = logging.getLogger("asyncio")
     if not any(isinstance(f, _AbandonedOrbaxTasks) for f in asyncio_log.filters):

@@ -36,12 +36,12 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from a2catvn_jax import losses, networks
-from a2catvn_jax import replay as replay_lib
+from a2catvn_jax.agent import losses, networks
+from a2catvn_jax.agent import replay as replay_lib
 from a2catvn_jax.config import Config
 from a2catvn_jax.env import NavEnv
-from a2catvn_jax.scenes.spec import NUM_CLASSES
-from a2catvn_jax.world import SEGMENTATION_COLORS
+from a2catvn_jax.env.scenes.spec import NUM_CLASSES
+from a2catvn_jax.env.world import SEGMENTATION_COLORS
 
 DEPTH_SCALE = 0.1  # depth targets are metres * DEPTH_SCALE
 INPUT_FIELDS = ("rgb", "target", "prev_action", "prev_reward", "reset")  # [T+1, B] network inputs

@@ -18,8 +18,8 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
-from a2catvn_jax.scenes.mjcf import geom_aabb
-from a2catvn_jax.scenes.spec import Scene
+from a2catvn_jax.env.scenes.mjcf import geom_aabb
+from a2catvn_jax.env.scenes.spec import Scene
 
 FLOOR_CLEARANCE = 0.02  # geoms entirely below this height (rugs) do not block
 

@@ -27,9 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from a2catvn_jax import camera, render
 from a2catvn_jax.config import EnvConfig
-from a2catvn_jax.world import SEGMENTATION_COLORS, World, cam_position, make_scenes
+from a2catvn_jax.env import camera, render
+from a2catvn_jax.env.world import SEGMENTATION_COLORS, World, cam_position, make_scenes
 
 # (forward, left, rotate, tilt) per action; metres and degrees.
 ACTION_SETS = {

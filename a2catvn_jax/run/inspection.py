@@ -1,7 +1,7 @@
 """Look inside a trained agent: restore a checkpoint, record an episode with the network's
 depth and segmentation predictions, and draw them beside the ground truth and the path.
 
-    from a2catvn_jax import inspection
+    from a2catvn_jax.run import inspection
     agent = inspection.load_agent("runs/quickstart")           # latest checkpoint, training houses
     rec = inspection.record(agent, steps=200, seed=0)          # environment 0, step by step
     inspection.prediction_figure(agent, rec, t=10)             # matplotlib Figure
@@ -16,7 +16,17 @@ import dataclasses
 from pathlib import Path
 from typing import Optional, Sequence
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from matplotlib.figure import Figure  # no pyplot: works with any backend; notebooks display it
+
+from a2catvn_jax.agent.learner import DEPTH_SCALE
+from a2catvn_jax.agent.losses import downsize_mean
+from a2catvn_jax.agent.networks import VN_HEADS, A2CATNet
+from a2catvn_jax.env.scenes.plot import TopdownMap
+from a2catvn_jax.env.world import SEGMENTATION_COLORS
+from a2catvn_jax.run.restore import restore
 
 RECORD_OBS = ("rgb", "depth", "segmentation_rgb", "target_rgb", "target_depth", "target_segmentation_rgb")
 RECORD_INFO = ("pose", "target_pose", "scene", "goal")
@@ -38,8 +48,6 @@ class Agent:
     @property
     def trained_vn_heads(self) -> tuple[str, ...]:
         """The depth / segmentation heads that had a non-zero loss weight in training."""
-        from a2catvn_jax.networks import VN_HEADS
-
         w = self.run_cfg.train.loss_weights
         return tuple(h for h in VN_HEADS if getattr(w, h) > 0)
 
@@ -50,8 +58,6 @@ def load_agent(workdir, step: Optional[int] = None, houses: str = "train", overr
     `houses` and `overrides` are those of `python -m a2catvn_jax.evaluate` (the network's
     keys cannot change). Raises `CheckpointError`, `ConfigError` and `ValueError`.
     """
-    from a2catvn_jax.evaluate import restore
-
     cfg, run_cfg, env, learner, params, step, meta = restore(workdir, step, houses, overrides)
     return Agent(Path(workdir), run_cfg, cfg, env, learner, params, step, int(meta["frames"]))
 
@@ -62,13 +68,6 @@ def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", e
     pose / target / scene / goal, the action, reward, done and success of the step, and
     the network's predictions at the ground truth's resolution: depth_pred (metres),
     segmentation_pred and target_segmentation_pred (RGB in [0, 1])."""
-    import jax
-    import jax.numpy as jnp
-
-    from a2catvn_jax.learner import DEPTH_SCALE
-    from a2catvn_jax.networks import VN_HEADS, A2CATNet
-    from a2catvn_jax.world import SEGMENTATION_COLORS
-
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
     if policy not in ("sample", "greedy", "random"):
@@ -126,16 +125,12 @@ def episodes(rec: dict) -> list[tuple[int, int]]:
 
 def _downsized(image: np.ndarray, size: int) -> np.ndarray:
     """An [H, W, ...] ground-truth image averaged down to `size` rows, as the losses see it."""
-    from a2catvn_jax.losses import downsize_mean
-
     return np.asarray(downsize_mean(image[None], image.shape[0] // size)[0])
 
 
 def prediction_figure(agent: Agent, rec: dict, t: int):
     """A matplotlib Figure for step `t`: observation and target; depth, observation
     segmentation and target segmentation, ground truth above the prediction."""
-    from matplotlib.figure import Figure  # no pyplot: works with any backend; notebooks display it
-
     if not 0 <= t < len(rec["done"]):
         raise ValueError(f"t must be in [0, {len(rec['done'])}), got {t}")
     a = rec["depth_pred"].shape[1]
@@ -175,8 +170,6 @@ def prediction_figure(agent: Agent, rec: dict, t: int):
 def path_map(agent: Agent, rec: dict, episode: int = 0, size: int = 256) -> np.ndarray:
     """[size, size, 3] uint8: the top-down map of an episode's scene with its path, final
     pose and target pose."""
-    from a2catvn_jax.scenes.plot import TopdownMap
-
     spans = episodes(rec)
     if not 0 <= episode < len(spans):
         raise ValueError(f"episode must be in [0, {len(spans)}), got {episode}")

@@ -32,8 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from a2catvn_jax import camera
-from a2catvn_jax.geometry import (
+from a2catvn_jax.env import camera
+from a2catvn_jax.env.geometry import (
     FAMILIES,
     PATTERN_CHECKER,
     PATTERN_PLANKS,

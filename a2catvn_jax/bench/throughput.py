@@ -1,0 +1,153 @@
+"""Throughput of the environment, the training update and the network (see `python -m a2catvn_jax.benchmark`)."""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from a2catvn_jax.agent.learner import Learner
+from a2catvn_jax.agent.networks import A2CATNet
+from a2catvn_jax.config import CONFIGS, load_config
+from a2catvn_jax.env import NavEnv
+
+
+def _env_config(batch: int, resolution: int, overrides):
+    return load_config(
+        None,
+        [
+            f"env.num_envs={batch}",
+            f"env.render.image_size={resolution}",
+            "env.scene.kind=house",
+            "env.scene.grid=[2,3]",
+            "env.scene.num_scenes=1",
+            "env.goals_per_scene=4",
+            *overrides,
+        ],
+    ).env
+
+
+def bench_env(batch: int, resolution: int, steps: int, overrides=(), world=None) -> dict:
+    cfg = _env_config(batch, resolution, overrides)
+    env = NavEnv(cfg, world=world)
+    reset = jax.jit(env.reset)
+    step = jax.jit(env.step)
+    t0 = time.perf_counter()
+    state = jax.block_until_ready(reset(jax.random.PRNGKey(0)))
+    actions = jax.random.randint(jax.random.PRNGKey(1), (steps + 1, batch), 0, env.num_actions)
+    state = jax.block_until_ready(step(state, actions[0]))
+    compile_s = time.perf_counter() - t0
+    poses, fallbacks = [], 0
+    t0 = time.perf_counter()
+    for k in range(steps):
+        state = step(state, actions[k + 1])
+        if k < 4:
+            poses.append(np.asarray(state.info["pose"]))
+    jax.block_until_ready(state)
+    dt = time.perf_counter() - t0
+    fallbacks = int(np.asarray(state.metrics["fallback"]).sum())
+    return {
+        "batch": batch,
+        "resolution": resolution,
+        "frames_per_s": batch * steps / dt,
+        "compile_s": compile_s,
+        "geoms": int(env.world.models[0].ngeom),
+        "fallback_frames_last_step": fallbacks,
+        "poses": np.concatenate(poses),
+        "env": env,
+    }
+
+
+def bench_mujoco_gl(env, resolution: int, poses: np.ndarray, frames: int) -> float:
+    from a2catvn_jax.bench import mujoco_gl  # needs a headless OpenGL
+
+    return mujoco_gl.benchmark_fps(
+        env.scene_mjcf(0), resolution, resolution, n_frames=frames, poses=poses, cam_height=env.cfg.camera_height
+    )
+
+
+def _timed_updates(learner, updates: int):
+    """(compile seconds, frames/s) of `learner.update`."""
+    t0 = time.perf_counter()
+    state = jax.block_until_ready(learner.init(jax.random.PRNGKey(0)))
+    state, m = learner.update(state)
+    jax.block_until_ready(m)
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for _ in range(updates):
+        state, m = learner.update(state)
+    jax.block_until_ready(m)
+    return compile_s, updates * learner.frames_per_update / (time.perf_counter() - t0)
+
+
+def _env_rollout_fps(env, steps: int, repeats: int) -> float:
+    """Frames/s of `steps` environment steps with random actions, in one jitted scan."""
+
+    @jax.jit
+    def rollout(state, key):
+        def body(s, k):
+            return env.step(s, jax.random.randint(k, (env.num_envs,), 0, env.num_actions)), None
+
+        return jax.lax.scan(body, state, jax.random.split(key, steps))[0]
+
+    state = rollout(env.reset(jax.random.PRNGKey(0)), jax.random.PRNGKey(1))
+    jax.block_until_ready(state)
+    t0 = time.perf_counter()
+    for k in range(repeats):
+        state = rollout(state, jax.random.PRNGKey(k + 2))
+    jax.block_until_ready(state)
+    return repeats * steps * env.num_envs / (time.perf_counter() - t0)
+
+
+def bench_train(name: str, overrides, updates: int) -> dict:
+    cfg = load_config(CONFIGS / f"{name}.yaml", overrides)
+    learner = Learner(cfg)
+    compile_s, fps = _timed_updates(learner, updates)
+    env_fps = _env_rollout_fps(learner.env, learner.T, max(2, updates))
+    return {"config": name, "batch": learner.B, "resolution": cfg.env.render.image_size, "train_fps": fps,
+            "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps}
+
+
+def bench_network(resolution: int, frames: int, targets: int, repeats: int, overrides=()) -> dict:
+    """Forward+backward frames/s of the conv base and VN heads: JAX as trained, JAX with
+    both streams per frame, and PyTorch (None when torch is not installed). `overrides`
+    may set `agent.*` keys (e.g. agent.space_to_depth=true)."""
+    net = A2CATNet(load_config(None, overrides).agent, 8, resolution)
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
+    rgb = jax.random.randint(k1, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
+    target_rgb = jax.random.randint(k2, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
+    params = net.init(k3, rgb[:1], target_rgb[:1], jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
+
+    def loss(params, rgb, target_rgb, target_index):
+        target_feats = net.apply(params, target_rgb, method=A2CATNet.target_stream)
+        conv4, feats = net.apply(params, rgb, target_feats[target_index], method=A2CATNet.encode)
+        heads = net.apply(params, conv4, method=A2CATNet.vn_heads)
+        return jnp.mean(feats**2) + sum(jnp.mean(h**2) for h in heads.values())
+
+    grad = jax.jit(jax.grad(loss))
+
+    def fps(*args):
+        jax.block_until_ready(grad(params, *args))
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            out = grad(params, *args)
+        jax.block_until_ready(out)
+        return repeats * frames / (time.perf_counter() - t0)
+
+    shared = fps(rgb, target_rgb[:targets], jnp.arange(frames) % targets)
+    per_frame = fps(rgb, target_rgb, jnp.arange(frames))
+    try:
+        from a2catvn_jax.bench import torch_reference  # needs PyTorch
+    except ImportError:
+        torch_fps = None
+    else:
+        step = torch_reference.step_fn(resolution, frames)
+        step()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            step()
+        torch_fps = repeats * frames / (time.perf_counter() - t0)
+    return {"resolution": resolution, "frames": frames, "targets": targets, "jax_fps": shared,
+            "jax_per_frame_fps": per_frame, "torch_fps": torch_fps}

@@ -1,0 +1,72 @@
+"""What every command line shares: the configuration arguments and one-line errors.
+
+    parser = argparse.ArgumentParser(...)
+    cli.add_config_args(parser)              # --config PATH, --set KEY=VALUE ...
+    args = parser.parse_args()
+    with cli.errors(parser, code=2):
+        cfg = cli.config_from_args(args)     # a UserError becomes "error: ..." and exit 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+from typing import Any, Iterator, Optional, Sequence
+
+from a2catvn_jax.config import Config, load_config
+from a2catvn_jax.errors import UserError
+
+MAX_MESSAGE = 2000  # characters of an error message a command prints (orbax's can list a whole tree)
+SET_HELP = "override config keys, e.g. --set env.num_envs=32 env.render.culling=false (repeatable)"
+
+
+def add_config_args(parser: argparse.ArgumentParser, *, config: bool = True,
+                    help: str = SET_HELP) -> argparse.ArgumentParser:
+    """Add `--config PATH` (unless `config` is False) and `--set KEY=VALUE [KEY=VALUE ...]`
+    (repeatable) to `parser`.
+
+    Parsed into `args.config` (str or None) and `args.overrides` (list of lists; read
+    them with `overrides_of`). Because `--set` takes several values, put positional
+    arguments before it or separate them with `--`.
+    """
+    group = parser.add_argument_group("configuration")
+    if config:
+        group.add_argument("--config", metavar="PATH", default=None, help="YAML config file (may list only some keys)")
+    group.add_argument("--set", dest="overrides", metavar="KEY=VALUE", nargs="+", action="append", default=[], help=help)
+    return parser
+
+
+def overrides_of(args: argparse.Namespace) -> list[str]:
+    """The `--set` overrides of a namespace parsed with `add_config_args`, in order."""
+    overrides: list[str] = []
+    for item in getattr(args, "overrides", None) or []:
+        if isinstance(item, str):
+            overrides.append(item)
+        else:
+            overrides.extend(item)
+    return overrides
+
+
+def config_from_args(args: argparse.Namespace, *, schema: type = Config,
+                     default: Optional[str | os.PathLike] = None) -> Any:
+    """The configuration of a namespace parsed with `add_config_args`: the `--config` file
+    (or `default` when none was given; None: the built-in defaults) with the overrides."""
+    path = getattr(args, "config", None)
+    return load_config(default if path is None else path, overrides_of(args), schema=schema)
+
+
+def one_line(message: str, limit: int = MAX_MESSAGE) -> str:
+    """`message` cut to `limit` characters."""
+    message = str(message)
+    return message if len(message) <= limit else message[:limit] + " ..."
+
+
+@contextlib.contextmanager
+def errors(parser: argparse.ArgumentParser, code: int = 1, kinds: Sequence[type] = (UserError,)) -> Iterator[None]:
+    """Turn an error of `kinds` (default: any `UserError`) raised inside the block into
+    `error: MESSAGE` on stderr and exit status `code`."""
+    try:
+        yield
+    except tuple(kinds) as e:
+        parser.exit(code, f"error: {one_line(str(e))}\n")

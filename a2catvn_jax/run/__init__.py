@@ -1,0 +1,2 @@
+"""Running the agent on the host: training, pre-training, evaluation, experiments,
+checkpoints, metrics, plots, videos and inspection."""

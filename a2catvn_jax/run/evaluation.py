@@ -1,0 +1,176 @@
+"""Evaluate a trained agent: success rate, SPL, episode statistics, and a video.
+
+`evaluate(workdir)` restores the parameters of a checkpoint of the run in `workdir`
+(`run.restore`). The policy (sampled; its argmax with `policy="greedy"`; or, as a
+baseline, uniformly random actions with `policy="random"`) then acts in all B
+environments at curriculum complexity 1 until every environment has finished
+ceil(episodes / B) episodes; the first `episodes` of these, in environment order,
+are counted, so that short episodes are not favoured.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import jax
+import numpy as np
+
+from a2catvn_jax.run.restore import restore
+from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
+
+MAX_CHUNK = 128  # environment steps per compiled call
+EPISODE_FIELDS = {  # per-episode list -> environment metric
+    "success": "success",
+    "length": "episode_length",
+    "spl": "episode_spl",
+    "return": "episode_return",
+    "start_distance": "episode_start_distance",
+}
+POLICIES = ("sample", "greedy", "random")
+
+
+def _chunk_fn(learner, steps: int, policy: str, video: bool):
+    """Jitted: `steps` environment steps of the policy in all environments."""
+    env = learner.env
+
+    def run(params, target_feats, env_state, agent, key):
+        def body(carry, k):
+            env_state, agent = carry
+            core, action, _, _ = learner.act(params, target_feats, agent, env_state, k, policy == "greedy")
+            if policy == "random":
+                action = jax.random.randint(k, action.shape, 0, env.num_actions)
+            nxt = env.step(env_state, action)
+            out = {name: nxt.metrics[metric] for name, metric in EPISODE_FIELDS.items()}
+            out["done"] = nxt.done
+            if video:
+                info = env_state.info
+                out["video"] = {
+                    "rgb": env_state.obs["rgb"][0],
+                    "target_rgb": env_state.obs["target_rgb"][0],
+                    **{k: info[k][0] for k in ("pose", "target_pose", "scene", "goal")},
+                }
+            return (nxt, learner.observe(core, action, nxt)), out
+
+        key, sub = jax.random.split(key)
+        (env_state, agent), out = jax.lax.scan(body, (env_state, agent), jax.random.split(sub, steps))
+        return env_state, agent, key, out
+
+    return jax.jit(run)
+
+
+def evaluate(
+    workdir,
+    episodes: int = 100,
+    *,
+    step: Optional[int] = None,
+    houses: str = "train",
+    policy: str = "sample",
+    seed: int = 0,
+    overrides: Sequence[str] = (),
+    video=None,
+    video_episodes: int = 2,
+    log: Callable[[str], None] = print,
+) -> dict:
+    """Evaluate checkpoint `step` (default: the latest) of the run in `workdir`.
+
+    Returns a JSON-ready dict: step and frames (the checkpoint's update and training
+    frames), houses, scenes (names), policy, seed, complexity, num_envs,
+    max_episode_steps, eval_frames (environment steps taken), episodes, success_rate,
+    spl, episode_length and episode_return (means over the counted episodes),
+    per_episode (lists success, length, spl, return, start_distance), and video (its
+    path) when one is written. Raises `CheckpointError` (no run, no or unreadable
+    checkpoint), `ConfigError` (bad overrides), `ValueError` (bad arguments) and
+    `VideoError`.
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if policy not in POLICIES:
+        raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
+    if video is not None:
+        if video_episodes < 1:
+            raise ValueError(f"video_episodes must be >= 1, got {video_episodes}")
+        check_video_path(video)
+    cfg, _, env, learner, params, step, meta = restore(workdir, step, houses, overrides, log)
+    B = env.num_envs
+    per_env = math.ceil(episodes / B)
+    chunk = min(MAX_CHUNK, per_env * cfg.env.max_episode_steps)
+    run = _chunk_fn(learner, chunk, policy, video is not None)
+    k_reset, key = jax.random.split(jax.random.PRNGKey(seed))
+    env_state = jax.jit(lambda k: env.reset(k, complexity=cfg.env.complexity))(k_reset)
+    agent = learner.initial_agent()
+    target_feats = jax.jit(learner.target_features)(params)
+
+    found: list[list[dict]] = [[] for _ in range(B)]
+    video_steps: list[dict] = []
+    video_done = 0
+    steps = 0
+    t0 = time.perf_counter()
+    while min(len(f) for f in found) < per_env or (video is not None and video_done < video_episodes):
+        env_state, agent, key, out = run(params, target_feats, env_state, agent, key)
+        out = jax.device_get(out)
+        steps += chunk
+        for t, b in zip(*np.nonzero(out["done"])):
+            if len(found[b]) < per_env:
+                found[b].append({name: out[name][t, b].item() for name in EPISODE_FIELDS})
+        if video is not None and video_done < video_episodes:
+            v = out["video"]
+            for t in range(chunk):
+                done = bool(out["done"][t, 0])
+                video_steps.append({**{k: a[t] for k, a in v.items()}, "done": done,
+                                    "success": bool(out["success"][t, 0])})
+                video_done += done
+                if video_done == video_episodes:
+                    break
+    seconds = time.perf_counter() - t0
+
+    counted = [e for env_episodes in found for e in env_episodes][:episodes]
+    lists = {name: [e[name] for e in counted] for name in EPISODE_FIELDS}
+    result = {
+        "workdir": str(workdir),
+        "step": step,
+        "frames": int(meta["frames"]),
+        "houses": houses,
+        "scenes": [scene.name for scene in env.world.scenes],
+        "policy": policy,
+        "seed": seed,
+        "complexity": cfg.env.complexity,
+        "num_envs": B,
+        "max_episode_steps": cfg.env.max_episode_steps,
+        "eval_frames": steps * B,
+        "episodes": len(counted),
+        "success_rate": float(np.mean(lists["success"])),
+        "spl": float(np.mean(lists["spl"])),
+        "episode_length": float(np.mean(lists["length"])),
+        "episode_return": float(np.mean(lists["return"])),
+        "per_episode": lists,
+    }
+    log(f"update {step} ({result['frames']:,} frames), {houses} houses, {policy} policy: {len(counted)} episodes, "
+        f"success {result['success_rate']:.3f}, SPL {result['spl']:.3f}, length {result['episode_length']:.1f}, "
+        f"return {result['episode_return']:.3f} ({steps * B:,} frames in {seconds:.1f} s incl. compile)")
+    if video is not None:
+        frames = episode_frames(env, video_steps, video_episodes)
+        write_video(video, frames)
+        result["video"] = str(video)
+        log(f"wrote {video} ({len(frames)} frames: observation | target | map)")
+    return result
+
+
+def default_output(workdir, result: dict) -> Path:
+    return Path(workdir) / f"eval_{result['step']}_{result['houses']}_{result['policy']}.json"
+
+
+def to_json(result: dict) -> str:
+    """The result as JSON, one line per key and per per-episode list."""
+
+    def block(d: dict, pad: str) -> str:
+        return ",\n".join(
+            f"{pad}{json.dumps(k)}: "
+            + (f"{{\n{block(v, pad + ' ')}\n{pad}}}" if isinstance(v, dict) else json.dumps(v))
+            for k, v in d.items()
+        )
+
+    return "{\n" + block(result, " ") + "\n}\n"
