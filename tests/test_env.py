@@ -51,6 +51,7 @@ OBS_KEYS = (
     "target_depth",
     "target_segmentation",
     "target_segmentation_rgb",
+    "target_index",
 )
 
 
@@ -313,6 +314,13 @@ def test_reset_shapes_dtypes_and_observations(env_full, reset_full):
         for key in (k, "target_" + k):
             assert s.obs[key].shape == shape, key
             assert s.obs[key].dtype == dtype, key
+    # The target index picks the observation's target out of the environment's distinct targets.
+    index = np.asarray(s.obs["target_index"])
+    assert index.shape == (B,) and index.dtype == np.int32
+    targets = env.target_images()
+    assert targets["rgb"].shape[0] == env.num_targets
+    for k, name in (("rgb", "target_rgb"), ("depth", "target_depth"), ("segmentation", "target_segmentation")):
+        np.testing.assert_array_equal(np.asarray(targets[k])[index], np.asarray(s.obs[name]))
     assert s.reward.shape == (B,) and s.reward.dtype == jnp.float32
     assert s.done.shape == (B,) and s.done.dtype == jnp.bool_ and not bool(s.done.any())
     info = _np(s.info)

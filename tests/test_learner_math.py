@@ -10,12 +10,15 @@
   in the stored frames identifying every sampled position.
 - `networks.Conv1`: the space-to-depth and plain paths against each other and against a
   numpy convolution.
-- `Learner`: the memory core is cleared exactly at episode starts (LSTM and frame
-  stack), one update has finite metrics and gradients, and zero-weight replay losses
-  remove the replay buffer and their terms.
+- `update` / `acting`: the memory core is cleared exactly at episode starts (LSTM and
+  frame stack), one update has finite metrics and gradients, and zero-weight replay
+  losses remove the replay buffer and their terms.
 """
 
 from __future__ import annotations
+
+import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -23,11 +26,12 @@ import numpy as np
 import pytest
 import rlax
 
-from a2catvn_jax.agent import losses, networks
+from a2catvn_jax.agent import acting, losses, networks
 from a2catvn_jax.agent import replay as replay_lib
-from a2catvn_jax.agent.learner import REPLAY_FIELDS, Learner
-from a2catvn_jax.agent.networks import A2CATNet
+from a2catvn_jax.agent import update as update_lib
+from a2catvn_jax.agent.types import Inputs
 from a2catvn_jax.config import load_config
+from a2catvn_jax.env import NavEnv
 from a2catvn_jax.env.scenes.spec import NUM_CLASSES
 from a2catvn_jax.env.world import SEGMENTATION_COLORS
 from tiny import TINY_LEARNER
@@ -177,7 +181,7 @@ def test_sample_sequences_only_from_filled_slots():
     for k in range(2):
         value = 10 * (k + 1) + jnp.arange(B, dtype=jnp.int32)
         buf = replay_lib.add(buf, {"x": jnp.broadcast_to(value, (L, B))}, jnp.broadcast_to(value[:, None], (B, 2)))
-    seqs, carry = replay_lib.sample_sequences(buf, jax.random.PRNGKey(0), n, ("x",))
+    seqs, carry = replay_lib.sample_sequences(buf, jax.random.PRNGKey(0), n)
     x, carry = np.asarray(seqs["x"]), np.asarray(carry)
     assert x.shape == (L, n) and carry.shape == (n, 2)
     assert np.all(x == x[:1])
@@ -220,7 +224,8 @@ def test_sample_reward_windows(rewards_nonzero):
              if not r["reset"][t - frames + 2 : t + 1, b].any()}
     assert any(stored[k]["reward"][t, b] != 0 for k, t, b in valid) == rewards_nonzero
 
-    win, reward = replay_lib.sample_reward_windows(buf, jax.random.PRNGKey(1), n, frames, ("rgb", "target"))
+    win, reward = replay_lib.sample_reward_windows(buf, jax.random.PRNGKey(1), n, frames, buf.data["reward"],
+                                                   buf.data["reset"])
     target, rgb, reward = np.asarray(win["target"]), np.asarray(win["rgb"]), np.asarray(reward)
     assert target.shape == (n, frames) and rgb.shape == (n, frames, 2, 2, 3) and reward.shape == (n,)
     assert np.all(target > 0), "window from an unfilled slot"
@@ -264,51 +269,90 @@ def test_conv1_space_to_depth_is_the_same_function(size):
         assert np.max(np.abs(plain - ref)) < 1e-4
 
 
-# -- learner --------------------------------------------------------------------------------
+# -- update ---------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Setup:
+    """One configuration's environment, network, update functions and initial state."""
+
+    cfg: object
+    env: NavEnv
+    net: networks.Networks
+    fns: update_lib.UpdateFns
+    ts: object
+
+    @property
+    def target_feats(self):
+        return self.net.target_stream(self.ts.params, self.env.target_images()["rgb"])
+
+    def rollout(self, key):
+        """(transition, frame truth) of one rollout from the initial state."""
+        cfg, env, net = self.cfg, self.env, self.net
+
+        @jax.jit
+        def run(params, env_state, agent, key):
+            feats = net.target_stream(params, env.target_images()["rgb"])
+            traj, truth, *_ = acting.rollout(env, net, params, feats, env_state, agent, key, cfg.train.rollout_length,
+                                             lambda obs: update_lib.frame_truth(cfg, obs))
+            return traj, truth
+
+        return run(self.ts.params, self.ts.env_state, self.ts.agent, key)
+
+    def loss(self, params, traj, truth, replay, key):
+        targets = update_lib.targets_of(self.cfg, self.env)
+        return update_lib.loss(self.cfg, self.net, targets, params, traj, truth, self.ts.agent.carry, replay, key)
+
+
+def _setup(overrides, env=None) -> Setup:
+    cfg = load_config(None, TINY + overrides)
+    env = env if env is not None else NavEnv(cfg.env)
+    net = networks.make_networks(cfg, env.num_actions)
+    fns = update_lib.make_update(env, net, cfg)
+    return Setup(cfg, env, net, fns, fns.init(jax.random.PRNGKey(0)))
 
 
 @pytest.fixture(scope="module")
 def lstm():
-    learner = Learner(load_config(None, TINY))
-    return learner, learner.init(jax.random.PRNGKey(0))
+    return _setup([])
 
 
 @pytest.fixture(scope="module")
 def frame_stack(lstm):
     """The non-default network settings together: frame stack, class-id segmentation, space-to-depth conv1."""
-    extra = ["agent.memory=frame_stack", "agent.segmentation_loss=cross_entropy", "agent.space_to_depth=true"]
-    learner = Learner(load_config(None, TINY + extra), env=lstm[0].env)
-    return learner, learner.init(jax.random.PRNGKey(0))
+    return _setup(["agent.memory=frame_stack", "agent.segmentation_loss=cross_entropy", "agent.space_to_depth=true"],
+                  env=lstm.env)
 
 
-def _random_carry(learner, n, seed):
-    leaves, tree = jax.tree_util.tree_flatten(learner.initial_agent(n).carry)
+def _random_carry(net, n, seed):
+    leaves, tree = jax.tree_util.tree_flatten(net.initial_carry(n))
     keys = jax.random.split(jax.random.PRNGKey(seed), len(leaves))
     return jax.tree_util.tree_unflatten(tree, [jax.random.normal(k, x.shape) for k, x in zip(keys, leaves)])
 
 
 @pytest.mark.parametrize("memory", ["lstm", "frame_stack"])
 def test_core_is_cleared_at_episode_starts(memory, request):
-    learner, ts = request.getfixturevalue(memory)
-    L, N, size, cut = 6, 3, learner.cfg.env.render.image_size, 3
+    setup = request.getfixturevalue(memory)
+    net, ts = setup.net, setup.ts
+    L, N, size, cut = 6, 3, setup.cfg.env.render.image_size, 3
     rng = np.random.default_rng(6)
     reset = np.zeros((L, N), bool)
     reset[cut, 0] = True  # env 0: an episode starts mid-sequence
     reset[0, 1] = True  # env 1: the sequence starts an episode; env 2: no episode start
-    seq = {
-        "rgb": rng.integers(0, 256, (L, N, size, size, 3), dtype=np.uint8),
-        "target": rng.integers(0, learner.target_rgb.shape[0], (L, N)).astype(np.int32),
-        "prev_action": rng.integers(0, learner.env.num_actions, (L, N)).astype(np.int32),
-        "prev_reward": rng.normal(size=(L, N)).astype(np.float32),
-        "reset": reset,
-    }
+    seq = Inputs(
+        rgb=rng.integers(0, 256, (L, N, size, size, 3), dtype=np.uint8),
+        target=rng.integers(0, setup.env.num_targets, (L, N)).astype(np.int32),
+        prev_action=rng.integers(0, setup.env.num_actions, (L, N)).astype(np.int32),
+        prev_reward=rng.normal(size=(L, N)).astype(np.float32),
+        reset=reset,
+    )
     seq = jax.tree_util.tree_map(jnp.asarray, seq)
-    unroll = jax.jit(learner.unroll)
-    feats = learner.target_features(ts.params)
+    unroll = jax.jit(functools.partial(acting.unroll, net))
+    feats = setup.target_feats
     core = lambda s, c: np.asarray(unroll(ts.params, feats, s, c)[1])  # noqa: E731
-    a = core(seq, _random_carry(learner, N, 1))
-    b = core(seq, _random_carry(learner, N, 2))
-    zero = learner.initial_agent(N).carry
+    a = core(seq, _random_carry(net, N, 1))
+    b = core(seq, _random_carry(net, N, 2))
+    zero = net.initial_carry(N)
     from_zero = core(seq, zero)
     tail = core(jax.tree_util.tree_map(lambda x: jnp.roll(x, -cut, axis=0), seq), zero)[: L - cut]
 
@@ -321,74 +365,76 @@ def test_core_is_cleared_at_episode_starts(memory, request):
 
 
 def test_loss_gradients_are_finite(lstm):
-    learner, ts = lstm
+    ts = lstm.ts
     key = jax.random.PRNGKey(3)
-    traj, *_ = jax.jit(learner._rollout)(ts.params, ts.env_state, ts.agent, key)
-    replay = replay_lib.add(ts.replay, {k: traj[k] for k in REPLAY_FIELDS}, ts.agent.carry)
-    grads, terms = jax.jit(jax.grad(learner.loss, has_aux=True))(ts.params, traj, ts.agent.carry, replay, key)
+    traj, truth = lstm.rollout(key)
+    replay = replay_lib.add(ts.replay, traj, ts.agent.carry)
+    grads, terms = jax.jit(jax.grad(lstm.loss, has_aux=True))(ts.params, traj, truth, replay, key)
     assert {"pixel_control", "reward_prediction", "off_policy_critic"} <= set(terms)
     assert _finite(grads) and _finite(terms)
     assert sum(float(jnp.sum(jnp.abs(g))) for g in jax.tree_util.tree_leaves(grads)) > 0
 
 
 def test_update_metrics_are_finite(lstm):
-    learner, ts = lstm
-    _, metrics = learner.update(jax.tree_util.tree_map(jnp.copy, ts))
+    _, metrics = lstm.fns.update(jax.tree_util.tree_map(jnp.copy, lstm.ts))
     assert {"loss/pixel_control", "loss/reward_prediction", "loss/off_policy_critic", "loss/total"} <= set(metrics)
     assert _finite(metrics)
 
 
 def test_zero_weights_remove_replay_losses(lstm):
-    learner = Learner(load_config(None, TINY + NO_REPLAY), env=lstm[0].env)
-    assert not learner.uses_replay
-    ts = jax.eval_shape(learner.init, jax.random.PRNGKey(0))
+    cfg = load_config(None, TINY + NO_REPLAY)
+    assert not update_lib.uses_replay(cfg)
+    fns = update_lib.make_update(lstm.env, lstm.net, cfg)
+    ts = jax.eval_shape(fns.init, jax.random.PRNGKey(0))
     assert ts.replay is None
-    _, metrics = jax.eval_shape(learner.update, ts)
+    _, metrics = jax.eval_shape(fns.update, ts)
     terms = {k[len("loss/"):] for k in metrics if k.startswith("loss/")}
     assert terms == {"actor", "critic", "entropy", "depth", "segmentation", "target_segmentation", "total"}
 
 
 def test_segmentation_targets_in_both_encodings(lstm, frame_stack):
     seg = np.random.default_rng(0).integers(0, NUM_CLASSES, (2, 16, 16))
-    colours = lstm[0]._seg_targets(jnp.asarray(seg))
-    ids = frame_stack[0]._seg_targets(jnp.asarray(seg))
-    factor = lstm[0].cfg.train.aux_downsize
+    factor = lstm.cfg.train.aux_downsize
+    colours = losses.segmentation_targets(jnp.asarray(seg), factor, update_lib.segmentation_colors(lstm.cfg))
+    ids = losses.segmentation_targets(jnp.asarray(seg), factor, update_lib.segmentation_colors(frame_stack.cfg))
     want = (SEGMENTATION_COLORS[seg] / 255.0).reshape(2, 4, factor, 4, factor, 3).mean(axis=(2, 4))
     np.testing.assert_allclose(np.asarray(colours), want, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(ids), seg[:, factor // 2 :: factor, factor // 2 :: factor])
 
 
 def test_cross_entropy_segmentation_update(frame_stack):
-    learner, ts = frame_stack
+    setup = frame_stack
+    ts, net = setup.ts, setup.net
     key = jax.random.PRNGKey(4)
-    traj, *_ = jax.jit(learner._rollout)(ts.params, ts.env_state, ts.agent, key)
-    _, terms = jax.jit(learner.loss)(ts.params, traj, ts.agent.carry, None, key)
-    conv4, _ = jax.jit(learner.unroll)(ts.params, learner.target_features(ts.params), traj, ts.agent.carry)
-    pred = learner.net.apply(ts.params, conv4.reshape((-1,) + conv4.shape[2:]), method=A2CATNet.vn_heads)
+    traj, truth = setup.rollout(key)
+    _, terms = jax.jit(setup.loss)(ts.params, traj, truth, None, key)
+    conv4, _ = jax.jit(functools.partial(acting.unroll, net))(ts.params, setup.target_feats, traj.inputs, ts.agent.carry)
+    pred = net.vn_heads(ts.params, conv4.reshape((-1,) + conv4.shape[2:]))
     logits = np.asarray(pred["segmentation"], np.float64)
     assert logits.shape[-1] == NUM_CLASSES
-    labels = np.asarray(traj["seg_gt"]).reshape(logits.shape[:-1])
+    labels = np.asarray(truth.segmentation).reshape(logits.shape[:-1])
     log_p = logits - logits.max(-1, keepdims=True)
     log_p -= np.log(np.exp(log_p).sum(-1, keepdims=True))
     want = -np.take_along_axis(log_p, labels[..., None], -1).mean()
     np.testing.assert_allclose(float(terms["segmentation"]), want, rtol=1e-4)
-    _, metrics = learner.update(jax.tree_util.tree_map(jnp.copy, ts))
+    _, metrics = setup.fns.update(jax.tree_util.tree_map(jnp.copy, ts))
     assert _finite(metrics)
 
 
 def test_curriculum_schedule_drives_the_environment(lstm):
     """tau rises linearly between the two frame counts, reaches the environment, and needs no recompile."""
     extra = ["train.curriculum=true", "train.curriculum_complexity=[0.2,0.8]", "train.curriculum_frames=[16,48]"]
-    learner = Learner(load_config(None, TINY + extra), env=lstm[0].env)
-    per_update = learner.frames_per_update  # 16 frames
-    ts = learner.init(jax.random.PRNGKey(0))
+    cfg = load_config(None, TINY + extra)
+    fns = update_lib.make_update(lstm.env, lstm.net, cfg)
+    per_update = update_lib.frames_per_update(cfg)  # 16 frames
+    ts = fns.init(jax.random.PRNGKey(0))
     assert np.allclose(np.asarray(ts.env_state.info["complexity"]), 0.2)
     seen = []
     for _ in range(5):
-        ts, metrics = learner.update(ts)
+        ts, metrics = fns.update(ts)
         seen.append(float(metrics["complexity"]))
         assert np.allclose(np.asarray(ts.env_state.info["complexity"]), seen[-1])
     frames = np.arange(5) * per_update
     want = 0.2 + 0.6 * np.clip((frames - 16) / 32, 0, 1)
     np.testing.assert_allclose(seen, want, atol=1e-6)
-    assert learner.update._cache_size() == 1
+    assert fns.update._cache_size() == 1

@@ -6,8 +6,10 @@ import jax
 import numpy as np
 import pytest
 
-from a2catvn_jax.agent.learner import Learner
+from a2catvn_jax.agent.networks import make_networks
+from a2catvn_jax.agent.update import make_update
 from a2catvn_jax.config import load_config
+from a2catvn_jax.env import NavEnv
 from a2catvn_jax.run.checkpoint import Checkpointer
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.pretraining import PRETRAINED_DIR, PretrainError, load_matching, make_dataset, pretrain
@@ -42,13 +44,13 @@ def test_pretraining_lowers_the_losses(pretrained):
 
 def test_dataset_frames_are_rendered_from_free_poses():
     cfg = load_config(None, TINY)
-    learner = Learner(cfg)
-    data = make_dataset(learner, 70, jax.random.PRNGKey(1))
+    env = NavEnv(cfg.env)
+    data = make_dataset(cfg, env, 70, jax.random.PRNGKey(1))
     assert data["rgb"].shape == (70, 16, 16, 3) and data["rgb"].dtype == np.uint8
     assert data["depth_gt"].shape == (70, 4, 4) and np.all(data["depth_gt"] > 0)  # closed rooms: every ray hits
     assert data["seg_gt"].shape == (70, 4, 4, 3)
     scene = np.arange(70) % 2
-    assert np.all(data["target"] // learner.goals_per_scene == scene)
+    assert np.all(data["target"] // cfg.env.goals_per_scene == scene)
     assert len({d.tobytes() for d in data["rgb"]}) == 70  # distinct views
 
 
@@ -57,9 +59,11 @@ def test_init_from_loads_the_pretrained_layers(pretrained, tmp_path):
     lines = []
     train(load_config(None, TINY), tmp_path, max_updates=1, progress=False, log=lines.append, init_from=pre_dir)
     assert any("conv1, conv2, conv3, conv4, vn" in line and "lstm" in line for line in lines)
-    learner = Learner(load_config(None, TINY))
-    fresh = learner.init(jax.random.PRNGKey(0))
-    state, _ = Checkpointer(tmp_path, create=False).restore(jax.eval_shape(learner.init, jax.random.PRNGKey(0)), step=0)
+    cfg = load_config(None, TINY)
+    env = NavEnv(cfg.env)
+    init = make_update(env, make_networks(cfg, env.num_actions), cfg).init
+    fresh = init(jax.random.PRNGKey(0))
+    state, _ = Checkpointer(tmp_path, create=False).restore(jax.eval_shape(init, jax.random.PRNGKey(0)), step=0)
     got, want = state.params["params"], pre_params["params"]
     np.testing.assert_array_equal(np.asarray(got["conv1"]["kernel"]), np.asarray(want["conv1"]["kernel"]))
     assert not np.allclose(np.asarray(got["conv1"]["kernel"]), np.asarray(fresh.params["params"]["conv1"]["kernel"]))

@@ -17,21 +17,24 @@ SCRIPT = textwrap.dedent(
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import Mesh
     from a2catvn_jax.config import load_config
-    from a2catvn_jax.agent.learner import Learner
+    from a2catvn_jax.agent.networks import make_networks
+    from a2catvn_jax.agent.update import make_update, shard
+    from a2catvn_jax.env import NavEnv
 
     cfg = load_config(None, ["env.num_envs=4", "env.render.image_size=16", "env.scene.num_scenes=1",
         "env.scene.grid=[1,1]", "env.goals_per_scene=2", "train.rollout_length=4", "train.replay_size=8",
         "train.replay_batch=2", "agent.conv_channels=[4,8,8,8]", "agent.dense_size=16", "agent.core_size=16"])
-    learner = Learner(cfg)
+    env = NavEnv(cfg.env)
+    init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
     assert len(jax.devices()) == 2
-    ts = learner.init(jax.random.PRNGKey(0))
+    ts = init(jax.random.PRNGKey(0))
     plain = jax.tree_util.tree_map(jnp.copy, ts)
-    sharded = learner.shard(ts, Mesh(np.array(jax.devices()), ("batch",)))
+    sharded = shard(ts, Mesh(np.array(jax.devices()), ("batch",)))
     for _ in range(2):
-        sharded, m_sharded = learner.update(sharded)
-        plain, m_plain = learner.update(plain)
+        sharded, m_sharded = update(sharded)
+        plain, m_plain = update(plain)
     assert sharded.env_state.obs["rgb"].sharding.spec == jax.sharding.PartitionSpec("batch")
-    assert sharded.replay.data["rgb"].sharding.spec == jax.sharding.PartitionSpec(None, None, "batch")
+    assert sharded.replay.data.rgb.sharding.spec == jax.sharding.PartitionSpec(None, None, "batch")
     assert len(sharded.env_state.obs["rgb"].addressable_shards) == 2
     assert sharded.env_state.obs["rgb"].addressable_shards[0].data.shape[0] == 2
     for a, b in zip(jax.tree_util.tree_leaves(sharded.params), jax.tree_util.tree_leaves(plain.params)):

@@ -15,7 +15,10 @@ import jax
 import numpy as np
 import pytest
 
+from a2catvn_jax.agent.networks import make_networks
+from a2catvn_jax.agent.update import make_update
 from a2catvn_jax.config import load_config
+from a2catvn_jax.env import NavEnv
 from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.training import TrainingError, train
@@ -147,13 +150,13 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(tmp_path):
     with pytest.raises(TrainingError, match="non-finite"):
         train(cfg, tmp_path, max_updates=20, progress=False, log=lambda *_: None)
     ckpt = Checkpointer(tmp_path, create=False)
-    from a2catvn_jax.agent.learner import Learner
-
-    state, meta = ckpt.restore(jax.eval_shape(Learner(cfg).init, jax.random.PRNGKey(0)), cfg)
+    env = NavEnv(cfg.env)
+    net = make_networks(cfg, env.num_actions)
+    state, meta = ckpt.restore(jax.eval_shape(make_update(env, net, cfg).init, jax.random.PRNGKey(0)), cfg)
     assert all(np.all(np.isfinite(x)) for x in _leaves(state.params))
     # The parameters alone, as evaluation reads them, are the same arrays.
     params, meta_p = Checkpointer(tmp_path, create=False).restore_params(
-        jax.eval_shape(Learner(cfg).init_params, jax.random.PRNGKey(0)), cfg)
+        jax.eval_shape(net.init, jax.random.PRNGKey(0)), cfg)
     assert meta_p == meta
     assert all(np.array_equal(a, b) for a, b in zip(_leaves(params), _leaves(state.params)))
     rows = read_jsonl(tmp_path / "metrics.jsonl")

@@ -1,5 +1,8 @@
 """Loss terms of A2CAT-VN, as pure functions of arrays (time-major: [T, B, ...]).
 
+Each function computes one term from network outputs and data, with its equation in
+the docstring; `update.py` composes them with the configured weights.
+
 Returns follow the paper's eq. (1): every step of a rollout is bootstrapped from the
 critic's value at the end of the rollout (a mixture of n-step returns), and the
 bootstrap is cut where an episode ended. Pixel control is Peng's Q(1), i.e. n-step
@@ -40,6 +43,28 @@ def actor_critic_losses(logits, values, actions, returns):
     critic = jnp.mean(0.5 * jnp.square(returns - values))
     neg_entropy = jnp.mean(jnp.sum(jnp.exp(log_pi) * log_pi, -1))
     return actor, critic, neg_entropy
+
+
+def off_policy_critic_loss(values, rewards, dones, gamma: float):
+    """Critic loss on a replayed sequence, mean over [T, N] of 1/2 (g_t - v(s_t))^2.
+
+    values [T+1, N] of the current critic on the sequence's T+1 states; rewards,
+    dones [T, N]. g_t are `bootstrapped_returns` from the (constant) value of the last
+    state, cut at episode ends.
+    """
+    returns = bootstrapped_returns(rewards, dones, jax.lax.stop_gradient(values[-1]), gamma)
+    return jnp.mean(0.5 * jnp.square(returns - values[:-1]))
+
+
+def reward_class(reward):
+    """Reward-prediction class of rewards [...]: 0 zero, 1 positive, 2 negative."""
+    return jnp.where(reward > 0, 1, jnp.where(reward < 0, 2, 0)).astype(jnp.int32)
+
+
+def reward_prediction_loss(logits, reward):
+    """Softmax cross-entropy -log p(class(r)) of logits [N, 3] for the rewards [N] that
+    followed each window, mean over N (classes of `reward_class`)."""
+    return cross_entropy(logits, reward_class(reward))
 
 
 def grayscale(rgb):
@@ -96,6 +121,7 @@ def downsize_pick(x, factor: int):
 
 
 def mse(prediction, target):
+    """mean (prediction - target)^2 over every element."""
     return jnp.mean(jnp.square(prediction - target))
 
 
@@ -103,3 +129,28 @@ def cross_entropy(logits, labels):
     """Mean softmax cross-entropy of logits [..., C] against integer labels [...]."""
     log_p = jax.nn.log_softmax(logits)
     return -jnp.mean(jnp.take_along_axis(log_p, labels[..., None].astype(jnp.int32), -1))
+
+
+DEPTH_SCALE = 0.1  # depth targets are metres * DEPTH_SCALE
+
+
+def depth_targets(depth, factor: int):
+    """Depth ground truth of frames [N, H, W] (metres) at 1/factor resolution, scaled by DEPTH_SCALE."""
+    return downsize_mean(depth, factor) * DEPTH_SCALE
+
+
+def segmentation_targets(segmentation, factor: int, colors=None):
+    """Segmentation ground truth of class ids [N, H, W] at 1/factor resolution: the block
+    means of the class colours `colors` [C, 3] in [0, 1] (the paper's encoding, for an MSE
+    loss), or with `colors` None the centre pixel's class id (for a cross-entropy loss)."""
+    if colors is None:
+        return downsize_pick(segmentation, factor).astype(jnp.int32)
+    return downsize_mean(colors[segmentation], factor)
+
+
+def segmentation_loss(prediction, target):
+    """MSE of predicted colours [..., 3] against colour targets, or the softmax cross-entropy
+    of class logits [..., C] against integer class targets [...]."""
+    if jnp.issubdtype(target.dtype, jnp.integer):
+        return cross_entropy(prediction, target)
+    return mse(prediction, target)

@@ -15,11 +15,13 @@ the features of the last `stack` frames. Heads:
 - depth, observation segmentation, target segmentation: stride-2 deconvolution heads
   on conv4, at 1/`aux_downsize` of the image resolution.
 
-The network is split into methods so that the learner can run the conv base on a
-whole rollout at once, the core step by step (`lax.scan`), and each head only where
-its loss has a non-zero weight. The target stream (conv1, conv2 of the target image)
-is a method of its own because targets are few: the learner computes it once per
-distinct target image and gathers the result.
+`make_networks` wraps the Flax module in `Networks`, a set of pure functions of
+(params, inputs): the rest of the package never sees Flax. The network is split into
+functions so that the update can run the conv base on a whole rollout at once, the
+core step by step (`lax.scan`), and each head only where its loss has a non-zero
+weight. The target stream (conv1, conv2 of the target image) is a function of its own
+because targets are few: it runs once per distinct target image and the result is
+gathered.
 
 conv1 works on uint8 images. With `space_to_depth` it is computed as a 2x2/1 conv on
 4x4 pixel blocks (48 channels) with the same 8x8x3 kernel rearranged: the same
@@ -30,21 +32,20 @@ ceil(H/4) x ceil(W/4).
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from a2catvn_jax.config import AgentConfig
+from a2catvn_jax.config import AgentConfig, Config
+from a2catvn_jax.env.scenes.spec import NUM_CLASSES
 
 REWARD_CLASSES = 3  # zero, positive, negative
 RP_FRAMES = 3  # frames seen by the reward-prediction head
 VN_HEADS = ("depth", "segmentation", "target_segmentation")
 _PC_CHANNELS = 32
-
-
-def reward_class(reward):
-    """0 for zero reward, 1 positive, 2 negative."""
-    return jnp.where(reward > 0, 1, jnp.where(reward < 0, 2, 0)).astype(jnp.int32)
 
 
 def depth_to_space(x, block: int):
@@ -260,3 +261,80 @@ class VNHeads(nn.Module):
                 z = jax.image.resize(z, (z.shape[0], self.size, self.size, z.shape[-1]), "bilinear")
             out[h] = z
         return out
+
+
+Params = Any  # the network's parameter pytree
+Carry = Any  # the memory core's state pytree, leaves [N, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class Networks:
+    """The A2CAT-VN network as pure functions of its parameters (shapes: N frames).
+
+    images [N, H, W, 3] uint8; target features [N, g, g, c2]; conv4 maps
+    [N, g, g, c4]; features [N, dense]; core outputs [N, core].
+    """
+
+    module: A2CATNet
+    num_actions: int
+
+    def init(self, key) -> Params:
+        """Freshly initialised parameters."""
+        size = self.module.image_size
+        img = jnp.zeros((1, size, size, 3), jnp.uint8)
+        return self.module.init(key, img, img, jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
+
+    def initial_carry(self, batch: int) -> Carry:
+        """The memory core's state at an episode start, for `batch` agents."""
+        return self.module.apply({}, batch, method=A2CATNet.initial_carry)
+
+    def clear(self, carry: Carry, reset) -> Carry:
+        """`carry` with the state of the agents where `reset` [N] is set back to the initial one."""
+        init = self.initial_carry(reset.shape[0])
+        return jax.tree_util.tree_map(
+            lambda c, z: jnp.where(reset.reshape((-1,) + (1,) * (c.ndim - 1)), z, c), carry, init)
+
+    def target_stream(self, params: Params, target_rgb):
+        """conv1, conv2 of target images [K, H, W, 3] -> [K, g, g, c2]."""
+        return self.module.apply(params, target_rgb, method=A2CATNet.target_stream)
+
+    def encode(self, params: Params, rgb, target_features):
+        """Observations [N, H, W, 3] and their targets' stream features -> (conv4 maps, features)."""
+        return self.module.apply(params, rgb, target_features, method=A2CATNet.encode)
+
+    def core(self, params: Params, carry: Carry, features, prev_action, prev_reward):
+        """One step of the memory core: (carry, outputs [N, core])."""
+        return self.module.apply(params, carry, features, prev_action, prev_reward, method=A2CATNet.core)
+
+    def actor_critic(self, params: Params, core_out):
+        """(policy logits [N, A], value [N])."""
+        return self.module.apply(params, core_out, method=A2CATNet.actor_critic)
+
+    def pixel_control(self, params: Params, core_out):
+        """Dueling Q-values [N, G, G, A] on the pixel-control grid."""
+        return self.module.apply(params, core_out, method=A2CATNet.pixel_control)
+
+    def reward_prediction(self, params: Params, conv4_frames):
+        """conv4 maps of RP_FRAMES consecutive frames [N, RP_FRAMES, g, g, c4] -> logits [N, 3]."""
+        return self.module.apply(params, conv4_frames, method=A2CATNet.reward_prediction)
+
+    def vn_heads(self, params: Params, conv4, heads=VN_HEADS) -> dict:
+        """The named depth / segmentation heads on conv4 maps [N, g, g, c4]."""
+        return self.module.apply(params, conv4, tuple(heads), method=A2CATNet.vn_heads)
+
+
+def make_networks(cfg: Config, num_actions: int) -> Networks:
+    """The network of configuration `cfg` for `num_actions` actions."""
+    tc = cfg.train
+    module = A2CATNet(cfg.agent, num_actions, cfg.env.render.image_size, tc.pixel_control_cell, tc.aux_downsize,
+                      NUM_CLASSES)
+    return Networks(module, num_actions)
+
+
+def apply_flat(fn, x, lead: int = 2):
+    """`fn` applied to x [*lead_axes, ...] with its `lead` leading axes flattened into one
+    and restored on every output."""
+    shape = x.shape[:lead]
+    y = fn(x.reshape((-1,) + x.shape[lead:]))
+    return jax.tree_util.tree_map(lambda a: a.reshape(shape + a.shape[1:]), y)
+

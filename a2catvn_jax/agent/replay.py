@@ -1,8 +1,8 @@
 """A functional replay buffer of whole rollouts.
 
-The buffer keeps the last `slots` rollouts of all B environments: every field of a
-rollout `[L, B, ...]` is stored at `[slot, L, B, ...]`, with the memory-core state the
-rollout started from (so replayed sequences are unrolled from the state the agent
+The buffer keeps the last `slots` rollouts of all B environments: every leaf of a
+rollout pytree (a `Transition`) `[L, B, ...]` is stored at `[slot, L, B, ...]`, with the
+memory-core state the rollout started from (so replayed sequences are unrolled from the state the agent
 really had). Everything is a fixed-shape pytree, so adding and sampling happen inside
 the jitted update.
 
@@ -16,6 +16,8 @@ Sampling:
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -23,7 +25,7 @@ from flax import struct
 
 @struct.dataclass
 class Replay:
-    data: dict  # field -> [slots, L, B, ...]
+    data: Any  # rollout pytree, leaves [slots, L, B, ...]
     carry: object  # core state pytree, leaves [slots, B, ...]
     count: jnp.ndarray  # rollouts written so far (int32)
 
@@ -32,8 +34,8 @@ class Replay:
         return jax.tree_util.tree_leaves(self.data)[0].shape[0]
 
 
-def init(example: dict, example_carry, slots: int) -> Replay:
-    """An empty buffer for rollouts shaped like `example` (fields [L, B, ...])."""
+def init(example, example_carry, slots: int) -> Replay:
+    """An empty buffer for rollouts shaped like `example` (leaves [L, B, ...])."""
     zeros = lambda x: jnp.zeros((slots,) + x.shape, x.dtype)  # noqa: E731
     return Replay(
         jax.tree_util.tree_map(zeros, example),
@@ -42,7 +44,7 @@ def init(example: dict, example_carry, slots: int) -> Replay:
     )
 
 
-def add(replay: Replay, rollout: dict, carry) -> Replay:
+def add(replay: Replay, rollout, carry) -> Replay:
     """The buffer with `rollout` written over the oldest slot."""
     slot = replay.count % replay.slots
     put = lambda buf, x: jax.lax.dynamic_update_index_in_dim(buf, x.astype(buf.dtype), slot, 0)  # noqa: E731
@@ -58,27 +60,27 @@ def filled(replay: Replay):
     return jnp.arange(replay.slots) < replay.count
 
 
-def sample_sequences(replay: Replay, key, n: int, fields):
-    """n whole sequences: (fields -> [L, n, ...], core state leaves [n, ...])."""
+def sample_sequences(replay: Replay, key, n: int):
+    """n whole sequences: (rollout pytree with leaves [L, n, ...], core state leaves [n, ...])."""
     B = jax.tree_util.tree_leaves(replay.carry)[0].shape[1]
     ks, kb = jax.random.split(key)
     logits = jnp.where(filled(replay), 0.0, -jnp.inf)
     slot = jax.random.categorical(ks, logits, shape=(n,))
     env = jax.random.randint(kb, (n,), 0, B)
-    seqs = {f: jnp.moveaxis(replay.data[f][slot, :, env], 0, 1) for f in fields}
+    seqs = jax.tree_util.tree_map(lambda x: jnp.moveaxis(x[slot, :, env], 0, 1), replay.data)
     carry = jax.tree_util.tree_map(lambda c: c[slot, env], replay.carry)
     return seqs, carry
 
 
-def sample_reward_windows(replay: Replay, key, n: int, frames: int, fields):
+def sample_reward_windows(replay: Replay, key, n: int, frames: int, reward, reset):
     """n windows of `frames` consecutive steps of one environment inside one episode.
 
-    Returns (fields -> [n, frames, ...], reward [n] of the last step). The windows come
-    from the first L-1 steps of stored rollouts (those with a recorded reward); a window
-    may not cross an episode start (a `reset` after its first frame).
+    reward [slots, L-1, B] are the stored rollouts' rewards and reset [slots, L, B] their
+    episode starts. Returns (rollout pytree with leaves [n, frames, ...], reward [n] of
+    the last step). The windows come from the first L-1 steps of stored rollouts (those
+    with a recorded reward); a window may not cross an episode start (a `reset` after
+    its first frame).
     """
-    reward = replay.data["reward"]  # [slots, L-1, B]
-    reset = replay.data["reset"]  # [slots, L, B]
     S, T, B = reward.shape
     t = jnp.arange(T)
     # Window ending at step t: frames t-frames+1 .. t; none of frames after the first may start an episode.
@@ -94,5 +96,5 @@ def sample_reward_windows(replay: Replay, key, n: int, frames: int, fields):
     idx = jnp.where(want_nonzero, pick(k_nz, nonzero), pick(k_z, jnp.where(jnp.any(zero), zero, ok)))
     slot, step, env = idx // (T * B), (idx // B) % T, idx % B
     window = step[:, None] + jnp.arange(1 - frames, 1)[None, :]  # [n, frames]
-    out = {f: replay.data[f][slot[:, None], window, env[:, None]] for f in fields}
+    out = jax.tree_util.tree_map(lambda x: x[slot[:, None], window, env[:, None]], replay.data)
     return out, reward[slot, step, env]

@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from a2catvn_jax.agent.learner import Learner
-from a2catvn_jax.agent.networks import A2CATNet
+from a2catvn_jax.agent.networks import make_networks
+from a2catvn_jax.agent.update import frames_per_update, make_update
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import NavEnv
 
@@ -68,18 +68,19 @@ def bench_mujoco_gl(env, resolution: int, poses: np.ndarray, frames: int) -> flo
     )
 
 
-def _timed_updates(learner, updates: int):
-    """(compile seconds, frames/s) of `learner.update`."""
+def _timed_updates(cfg, env, updates: int):
+    """(compile seconds, frames/s) of the training update."""
+    init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
     t0 = time.perf_counter()
-    state = jax.block_until_ready(learner.init(jax.random.PRNGKey(0)))
-    state, m = learner.update(state)
+    state = jax.block_until_ready(init(jax.random.PRNGKey(0)))
+    state, m = update(state)
     jax.block_until_ready(m)
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     for _ in range(updates):
-        state, m = learner.update(state)
+        state, m = update(state)
     jax.block_until_ready(m)
-    return compile_s, updates * learner.frames_per_update / (time.perf_counter() - t0)
+    return compile_s, updates * frames_per_update(cfg) / (time.perf_counter() - t0)
 
 
 def _env_rollout_fps(env, steps: int, repeats: int) -> float:
@@ -103,10 +104,10 @@ def _env_rollout_fps(env, steps: int, repeats: int) -> float:
 
 def bench_train(name: str, overrides, updates: int) -> dict:
     cfg = load_config(CONFIGS / f"{name}.yaml", overrides)
-    learner = Learner(cfg)
-    compile_s, fps = _timed_updates(learner, updates)
-    env_fps = _env_rollout_fps(learner.env, learner.T, max(2, updates))
-    return {"config": name, "batch": learner.B, "resolution": cfg.env.render.image_size, "train_fps": fps,
+    env = NavEnv(cfg.env)
+    compile_s, fps = _timed_updates(cfg, env, updates)
+    env_fps = _env_rollout_fps(env, cfg.train.rollout_length, max(2, updates))
+    return {"config": name, "batch": env.num_envs, "resolution": cfg.env.render.image_size, "train_fps": fps,
             "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps}
 
 
@@ -114,16 +115,16 @@ def bench_network(resolution: int, frames: int, targets: int, repeats: int, over
     """Forward+backward frames/s of the conv base and VN heads: JAX as trained, JAX with
     both streams per frame, and PyTorch (None when torch is not installed). `overrides`
     may set `agent.*` keys (e.g. agent.space_to_depth=true)."""
-    net = A2CATNet(load_config(None, overrides).agent, 8, resolution)
+    net = make_networks(load_config(None, [f"env.render.image_size={resolution}", *overrides]), 8)
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
     rgb = jax.random.randint(k1, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
     target_rgb = jax.random.randint(k2, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
-    params = net.init(k3, rgb[:1], target_rgb[:1], jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
+    params = net.init(k3)
 
     def loss(params, rgb, target_rgb, target_index):
-        target_feats = net.apply(params, target_rgb, method=A2CATNet.target_stream)
-        conv4, feats = net.apply(params, rgb, target_feats[target_index], method=A2CATNet.encode)
-        heads = net.apply(params, conv4, method=A2CATNet.vn_heads)
+        target_feats = net.target_stream(params, target_rgb)
+        conv4, feats = net.encode(params, rgb, target_feats[target_index])
+        heads = net.vn_heads(params, conv4)
         return jnp.mean(feats**2) + sum(jnp.mean(h**2) for h in heads.values())
 
     grad = jax.jit(jax.grad(loss))

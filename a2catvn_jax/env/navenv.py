@@ -61,7 +61,8 @@ class State:
 
     obs: rgb [B,h,w,3] uint8, depth [B,h,w] float32 (metres along the ray),
       segmentation [B,h,w] uint8 class ids, segmentation_rgb [B,h,w,3] (class colours),
-      and the same four for the target image, prefixed "target_".
+      and the same four for the target image, prefixed "target_"; target_index [B]
+      int32, the target image's index in `NavEnv.target_images()`.
     info: scene, goal [B] int32; pose [B, 4] (x, y, yaw, tilt); target_pose [B, 4];
       start_distance [B] geodesic start-to-goal distance; step [B]; path_length [B];
       episode_return [B]; complexity [B]; key [B] PRNG keys.
@@ -173,6 +174,22 @@ class NavEnv:
         _, start = jax.vmap(self._sample_episode)(keys, jnp.asarray(scenes, jnp.int32), complexity)
         return start
 
+    @property
+    def num_targets(self) -> int:
+        """K: the distinct target images of the world (goals of every scene)."""
+        return int(np.prod(self.world.arrays.target_rgb.shape[:2]))
+
+    def target_index(self, scene, goal):
+        """Index in `target_images()` of goal `goal` of scene `scene` (int arrays of one shape)."""
+        return (scene * self.world.arrays.target_rgb.shape[1] + goal).astype(jnp.int32)
+
+    def target_images(self) -> dict:
+        """The K distinct target images, indexed by `obs["target_index"]`: rgb [K, h, w, 3]
+        uint8, depth [K, h, w] metres, segmentation [K, h, w] uint8 class ids."""
+        w = self.world.arrays
+        flat = lambda a: a.reshape((-1,) + a.shape[2:])  # noqa: E731
+        return {"rgb": flat(w.target_rgb), "depth": flat(w.target_depth), "segmentation": flat(w.target_seg)}
+
     def segmentation_rgb(self, classes):
         """The paper's encoding of class ids as colours evenly spread in hue: [..., 3] uint8."""
         return self._colors[classes]
@@ -198,6 +215,7 @@ class NavEnv:
             "target_depth": w.target_depth[s, g],
             "target_segmentation": tseg,
             "target_segmentation_rgb": self._colors[tseg],
+            "target_index": self.target_index(s, g),
         }
 
     def _cell(self, scene, xy):

@@ -19,6 +19,7 @@ from typing import Callable, Optional, Sequence
 import jax
 import numpy as np
 
+from a2catvn_jax.agent.acting import POLICIES, act_as, initial_agent, observe
 from a2catvn_jax.run.restore import restore
 from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
 
@@ -30,19 +31,15 @@ EPISODE_FIELDS = {  # per-episode list -> environment metric
     "return": "episode_return",
     "start_distance": "episode_start_distance",
 }
-POLICIES = ("sample", "greedy", "random")
 
 
-def _chunk_fn(learner, steps: int, policy: str, video: bool):
+def _chunk_fn(env, networks, steps: int, policy: str, video: bool):
     """Jitted: `steps` environment steps of the policy in all environments."""
-    env = learner.env
 
     def run(params, target_feats, env_state, agent, key):
         def body(carry, k):
             env_state, agent = carry
-            core, action, _, _ = learner.act(params, target_feats, agent, env_state, k, policy == "greedy")
-            if policy == "random":
-                action = jax.random.randint(k, action.shape, 0, env.num_actions)
+            core, action = act_as(policy, networks, params, target_feats, agent, env_state.obs, k)
             nxt = env.step(env_state, action)
             out = {name: nxt.metrics[metric] for name, metric in EPISODE_FIELDS.items()}
             out["done"] = nxt.done
@@ -53,7 +50,7 @@ def _chunk_fn(learner, steps: int, policy: str, video: bool):
                     "target_rgb": env_state.obs["target_rgb"][0],
                     **{k: info[k][0] for k in ("pose", "target_pose", "scene", "goal")},
                 }
-            return (nxt, learner.observe(core, action, nxt)), out
+            return (nxt, observe(core, action, nxt)), out
 
         key, sub = jax.random.split(key)
         (env_state, agent), out = jax.lax.scan(body, (env_state, agent), jax.random.split(sub, steps))
@@ -94,15 +91,15 @@ def evaluate(
         if video_episodes < 1:
             raise ValueError(f"video_episodes must be >= 1, got {video_episodes}")
         check_video_path(video)
-    cfg, _, env, learner, params, step, meta = restore(workdir, step, houses, overrides, log)
+    cfg, _, env, networks, params, step, meta = restore(workdir, step, houses, overrides, log)
     B = env.num_envs
     per_env = math.ceil(episodes / B)
     chunk = min(MAX_CHUNK, per_env * cfg.env.max_episode_steps)
-    run = _chunk_fn(learner, chunk, policy, video is not None)
+    run = _chunk_fn(env, networks, chunk, policy, video is not None)
     k_reset, key = jax.random.split(jax.random.PRNGKey(seed))
     env_state = jax.jit(lambda k: env.reset(k, complexity=cfg.env.complexity))(k_reset)
-    agent = learner.initial_agent()
-    target_feats = jax.jit(learner.target_features)(params)
+    agent = initial_agent(networks, B)
+    target_feats = jax.jit(networks.target_stream)(params, env.target_images()["rgb"])
 
     found: list[list[dict]] = [[] for _ in range(B)]
     video_steps: list[dict] = []

@@ -54,6 +54,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import EngFormatter
 from scipy import stats
 
+from a2catvn_jax.agent.update import total_updates
 from a2catvn_jax.config import CONFIGS, load_config, to_dict
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.run.checkpoint import Checkpointer
@@ -232,11 +233,6 @@ def evaluate_run(run: Run, houses: str, episodes: int, policy: str = "sample") -
     result = evaluate(run.workdir, episodes, houses=houses, policy=policy, log=lambda _: None)
     out.write_text(to_json(result))
     return result
-
-
-def total_updates(cfg) -> int:
-    """The updates of a whole run (as `Learner.total_updates`)."""
-    return math.ceil(cfg.train.total_frames / (cfg.env.num_envs * cfg.train.rollout_length))
 
 
 # -- statistics -------------------------------------------------------------------------

@@ -21,9 +21,9 @@ import jax.numpy as jnp
 import numpy as np
 from matplotlib.figure import Figure  # no pyplot: works with any backend; notebooks display it
 
-from a2catvn_jax.agent.learner import DEPTH_SCALE
-from a2catvn_jax.agent.losses import downsize_mean
-from a2catvn_jax.agent.networks import VN_HEADS, A2CATNet
+from a2catvn_jax.agent.acting import POLICIES, act_as, initial_agent, observe
+from a2catvn_jax.agent.losses import DEPTH_SCALE, downsize_mean
+from a2catvn_jax.agent.networks import VN_HEADS, Networks
 from a2catvn_jax.env.scenes.plot import TopdownMap
 from a2catvn_jax.env.world import SEGMENTATION_COLORS
 from a2catvn_jax.run.restore import restore
@@ -34,13 +34,13 @@ RECORD_INFO = ("pose", "target_pose", "scene", "goal")
 
 @dataclasses.dataclass
 class Agent:
-    """A restored run: its configuration (at evaluation settings), environment, learner and parameters."""
+    """A restored run: its configuration (at evaluation settings), environment, network and parameters."""
 
     workdir: Path
     run_cfg: object
     cfg: object
     env: object
-    learner: object
+    networks: Networks
     params: object
     step: int
     frames: int
@@ -58,8 +58,8 @@ def load_agent(workdir, step: Optional[int] = None, houses: str = "train", overr
     `houses` and `overrides` are those of `python -m a2catvn_jax.evaluate` (the network's
     keys cannot change). Raises `CheckpointError`, `ConfigError` and `ValueError`.
     """
-    cfg, run_cfg, env, learner, params, step, meta = restore(workdir, step, houses, overrides)
-    return Agent(Path(workdir), run_cfg, cfg, env, learner, params, step, int(meta["frames"]))
+    cfg, run_cfg, env, networks, params, step, meta = restore(workdir, step, houses, overrides)
+    return Agent(Path(workdir), run_cfg, cfg, env, networks, params, step, int(meta["frames"]))
 
 
 def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", env_index: int = 0) -> dict:
@@ -70,9 +70,9 @@ def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", e
     segmentation_pred and target_segmentation_pred (RGB in [0, 1])."""
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    if policy not in ("sample", "greedy", "random"):
+    if policy not in POLICIES:
         raise ValueError(f"policy must be sample, greedy or random, got {policy!r}")
-    env, learner = agent.env, agent.learner
+    env, networks = agent.env, agent.networks
     if not 0 <= env_index < env.num_envs:
         raise ValueError(f"env_index must be in [0, {env.num_envs}), got {env_index}")
     colors = jnp.asarray(SEGMENTATION_COLORS, jnp.float32) / 255.0
@@ -84,13 +84,10 @@ def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", e
 
     @jax.jit
     def step(params, target_feats, env_state, agent_state, key):
-        k_act, k_random = jax.random.split(key)
-        core, action, _, _ = learner.act(params, target_feats, agent_state, env_state, k_act, policy == "greedy")
-        if policy == "random":
-            action = jax.random.randint(k_random, action.shape, 0, env.num_actions)
-        inputs = learner.inputs(env_state, agent_state)
-        conv4, _ = learner.net.apply(params, inputs["rgb"], target_feats[inputs["target"]], method=A2CATNet.encode)
-        pred = learner.net.apply(params, conv4, VN_HEADS, method=A2CATNet.vn_heads)
+        core, action = act_as(policy, networks, params, target_feats, agent_state, env_state.obs, key)
+        obs = env_state.obs
+        conv4, _ = networks.encode(params, obs["rgb"], target_feats[obs["target_index"]])
+        pred = networks.vn_heads(params, conv4)
         nxt = env.step(env_state, action)
         out = {k: env_state.obs[k][env_index] for k in RECORD_OBS}
         out.update({k: env_state.info[k][env_index] for k in RECORD_INFO})
@@ -99,13 +96,13 @@ def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", e
                    depth_pred=pred["depth"][env_index] / DEPTH_SCALE,
                    segmentation_pred=as_rgb(pred["segmentation"][env_index]),
                    target_segmentation_pred=as_rgb(pred["target_segmentation"][env_index]))
-        return nxt, learner.observe(core, action, nxt), out
+        return nxt, observe(core, action, nxt), out
 
     key = jax.random.PRNGKey(seed)
     key, k_reset = jax.random.split(key)
     env_state = jax.jit(lambda k: env.reset(k, complexity=agent.cfg.env.complexity))(k_reset)
-    agent_state = learner.initial_agent()
-    target_feats = jax.jit(learner.target_features)(agent.params)
+    agent_state = initial_agent(networks, env.num_envs)
+    target_feats = jax.jit(networks.target_stream)(agent.params, env.target_images()["rgb"])
     rows = []
     for k in jax.random.split(key, steps):
         env_state, agent_state, out = step(agent.params, target_feats, env_state, agent_state, k)

@@ -25,9 +25,11 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
-from a2catvn_jax.agent.learner import Learner
-from a2catvn_jax.agent.networks import A2CATNet
+from a2catvn_jax.agent.networks import make_networks
+from a2catvn_jax.agent.types import FrameTruth
+from a2catvn_jax.agent.update import frame_truth, targets_of, vn_terms
 from a2catvn_jax.config import save_config
+from a2catvn_jax.env import NavEnv
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.run.checkpoint import silence_abandoned_reads
 from a2catvn_jax.run.logger import MetricsWriter
@@ -41,10 +43,10 @@ class PretrainError(UserError, RuntimeError):
     """Pre-training cannot run as configured, or a pre-trained directory cannot be used."""
 
 
-def make_dataset(learner, size: int, key) -> dict:
-    """`size` samples: rgb [N, H, W, 3] uint8, target [N] (target index), and the
-    depth / segmentation ground truth at auxiliary resolution of the losses that are on."""
-    env = learner.env
+def make_dataset(cfg, env: NavEnv, size: int, key) -> dict:
+    """`size` samples: rgb [N, H, W, 3] uint8, target [N] (index of a target image of the
+    frame's scene), and the depth / segmentation ground truth at auxiliary resolution of
+    the losses that are on (depth_gt, seg_gt)."""
     S = env.num_scenes
     max_tilt = float(np.deg2rad(env.cfg.max_tilt_deg)) if "tilt_up" in env.action_names else 0.0
     tilt_steps = np.deg2rad(30.0) * np.arange(-4, 5)
@@ -59,8 +61,10 @@ def make_dataset(learner, size: int, key) -> dict:
         tilt = jax.random.choice(keys[0], tilts, (CHUNK,))
         pose = pose.at[:, 3].set(tilt)
         frame = env.render_poses(scene, pose)
-        return {"rgb": frame.rgb, "target": scene * learner.goals_per_scene + goal.astype(jnp.int32),
-                **learner.frame_targets({"depth": frame.depth, "segmentation": frame.cls})}
+        truth = frame_truth(cfg, {"depth": frame.depth, "segmentation": frame.cls})
+        out = {"rgb": frame.rgb, "target": env.target_index(scene, goal)}
+        out.update({name: x for name, x in (("depth_gt", truth.depth), ("seg_gt", truth.segmentation)) if x is not None})
+        return out
 
     parts = []
     for i, k in enumerate(jax.random.split(key, -(-size // CHUNK))):
@@ -78,21 +82,24 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
     if (workdir / PRETRAINED_DIR).exists():
         raise PretrainError(f"{workdir / PRETRAINED_DIR} already exists; choose another --workdir")
     pc = cfg.pretrain
-    learner = Learner(cfg)
+    env = NavEnv(cfg.env)
+    networks = make_networks(cfg, env.num_actions)
+    target_rgb, target_seg = targets_of(cfg, env)
     key = jax.random.PRNGKey(cfg.seed)
     k_params, k_data, k_order = jax.random.split(key, 3)
     t0 = time.perf_counter()
-    data = make_dataset(learner, pc.dataset_size, k_data)
-    log(f"dataset: {pc.dataset_size} observations in {learner.env.num_scenes} scene(s) in {time.perf_counter() - t0:.1f} s")
+    data = make_dataset(cfg, env, pc.dataset_size, k_data)
+    log(f"dataset: {pc.dataset_size} observations in {env.num_scenes} scene(s) in {time.perf_counter() - t0:.1f} s")
 
-    params = learner.init_params(k_params)
+    params = networks.init(k_params)
     optimizer = optax.adam(pc.learning_rate)
     opt_state = optimizer.init(params)
 
     def loss_fn(params, batch):
-        target_feats = learner.target_features(params)
-        conv4, _ = learner.net.apply(params, batch["rgb"], target_feats[batch["target"]], method=A2CATNet.encode)
-        terms = learner.vn_losses(params, conv4[None], {k: v[None] for k, v in batch.items()}, batch["target"][None])
+        target_feats = networks.target_stream(params, target_rgb)
+        conv4, _ = networks.encode(params, batch["rgb"], target_feats[batch["target"]])
+        truth = FrameTruth(batch.get("depth_gt"), batch.get("seg_gt"))
+        terms = vn_terms(cfg, networks, params, conv4, truth, target_seg[batch["target"]])
         return sum(getattr(w, k) * v for k, v in terms.items()), terms
 
     @jax.jit

@@ -13,7 +13,7 @@ from typing import Callable, Optional, Sequence
 
 import jax
 
-from a2catvn_jax.agent.learner import Learner
+from a2catvn_jax.agent.networks import make_networks
 from a2catvn_jax.config import ConfigError, apply_overrides
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.env.world import World, make_scenes
@@ -59,9 +59,9 @@ def restore(workdir, step: Optional[int] = None, houses: str = "train", override
             log: Callable[[str], None] = lambda _: None):
     """Checkpoint `step` (default: the latest) of the run in `workdir`, ready to act in `houses`.
 
-    Returns (cfg, run_cfg, env, learner, params, step, meta): the evaluation configuration
-    (the run's at complexity 1 with `overrides`), the run's own, the environment, a
-    learner over it, the parameters, the update restored and the checkpoint's metadata.
+    Returns (cfg, run_cfg, env, networks, params, step, meta): the evaluation configuration
+    (the run's at complexity 1 with `overrides`), the run's own, the environment, the
+    network, its parameters, the update restored and the checkpoint's metadata.
     """
     if houses not in HOUSES:
         raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
@@ -77,12 +77,10 @@ def restore(workdir, step: Optional[int] = None, houses: str = "train", override
         t0 = time.perf_counter()
         env = make_env(cfg.env, houses)
         log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
-        # Only the parameters are read (not the optimiser state or the replay buffer). Their
-        # shapes do not depend on the scenes: the template borrows env's world.
-        template = jax.eval_shape(Learner(run_cfg, NavEnv(run_cfg.env, world=env.world)).init_params,
-                                  jax.random.PRNGKey(0))
-        params, meta = ckpt.restore_params(template, run_cfg, step)
+        # Only the parameters are read (not the optimiser state or the replay buffer).
+        networks = make_networks(cfg, env.num_actions)
+        params, meta = ckpt.restore_params(jax.eval_shape(networks.init, jax.random.PRNGKey(0)), run_cfg, step)
     finally:
         ckpt.close()
     log(f"restored update {step} ({meta['frames']:,} training frames) from {ckpt.directory}")
-    return cfg, run_cfg, env, Learner(cfg, env), params, step, meta
+    return cfg, run_cfg, env, networks, params, step, meta

@@ -1,4 +1,4 @@
-"""The training loop: build the learner, restore or start a run, update, log, checkpoint.
+"""The training loop: build the environment and the update, restore or start a run, update, log, checkpoint.
 
 `train(cfg, workdir)` runs `train.total_frames` frames (or `max_updates` updates) of
 the jitted update, writes metrics every `train.log_every` updates and orbax
@@ -20,7 +20,9 @@ from pathlib import Path
 import jax
 from tqdm import tqdm
 
-from a2catvn_jax.agent.learner import Learner
+from a2catvn_jax.agent.networks import make_networks
+from a2catvn_jax.agent.update import frames_per_update, make_update, total_updates
+from a2catvn_jax.env import NavEnv
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError
 from a2catvn_jax.run.logger import Interval, MetricsWriter
@@ -45,7 +47,7 @@ class _StopFlag:
 
 
 def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: bool = True, log=None, init_from=None):
-    """Train `cfg` in `workdir`; returns (learner, final train state, last log row).
+    """Train `cfg` in `workdir`; returns (environment, final train state, last log row).
 
     `max_updates` bounds the updates of this call (default: up to train.total_frames);
     `log` receives the text lines (default: print). `init_from` is a pre-training work
@@ -60,24 +62,27 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
             f"or choose another --workdir"
         )
     t_build = time.perf_counter()
-    learner = Learner(cfg)
-    log(f"built {learner.env.num_scenes} scene(s), {learner.env.num_actions} actions, "
-        f"{learner.B} environments in {time.perf_counter() - t_build:.1f} s")
+    env = NavEnv(cfg.env)
+    init, update_fn = make_update(env, make_networks(cfg, env.num_actions), cfg)
+    per_update = frames_per_update(cfg)
+    log(f"built {env.num_scenes} scene(s), {env.num_actions} actions, "
+        f"{env.num_envs} environments in {time.perf_counter() - t_build:.1f} s")
     key = jax.random.PRNGKey(cfg.seed)
     if resume:
-        template = jax.eval_shape(learner.init, key)
+        template = jax.eval_shape(init, key)
         state, meta = ckpt.restore(template, cfg)
         log(f"resumed from update {meta['update']} ({meta['frames']:,} frames)")
     else:
-        state = learner.init(key)
+        state = init(key)
         if init_from is not None:
             params, loaded, kept = load_matching(state.params, init_from)
-            state = state.replace(params=params, opt_state=learner.optimizer.init(params))
+            state = init(key, params)  # the same state with the loaded parameters and their optimiser state
             log(f"initialised from {init_from}: {len(loaded)} arrays of {_modules(loaded)}; "
                 f"{len(kept)} arrays keep their initial values ({_modules(kept)})")
         ckpt.save(state, cfg, 0)
     start = int(state.update)
-    end = learner.total_updates if max_updates is None else min(learner.total_updates, start + max_updates)
+    last = total_updates(cfg)
+    end = last if max_updates is None else min(last, start + max_updates)
     writer = MetricsWriter(workdir)
     interval = Interval()
     stop = _StopFlag()
@@ -87,11 +92,11 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         bar = tqdm(total=end, initial=start, unit="upd", dynamic_ncols=True, file=sys.stderr)
     row = {}
     clean_exit = False
-    t_log, frames_log = time.perf_counter(), start * learner.frames_per_update
+    t_log, frames_log = time.perf_counter(), start * per_update
     try:
         update = start
         while update < end and not stop.stop:
-            new_state, metrics = learner.update(state)
+            new_state, metrics = update_fn(state)
             metrics = jax.device_get(metrics)
             if not all(math.isfinite(float(v)) for v in metrics.values()):
                 bad = sorted(k for k, v in metrics.items() if not math.isfinite(float(v)))
@@ -105,7 +110,7 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
             if bar is not None:
                 bar.update(1)
             if update % cfg.train.log_every == 0 or update == end:
-                now, frames = time.perf_counter(), update * learner.frames_per_update
+                now, frames = time.perf_counter(), update * per_update
                 row = {"update": update, "frames": frames, "fps": (frames - frames_log) / max(now - t_log, 1e-9),
                        **interval.row()}
                 writer.write(row)
@@ -118,7 +123,7 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
                     log(f"update {update} frames {frames:,} fps {row['fps']:.0f} success {_fmt(row['success_rate'])} "
                         f"length {_fmt(row['episode_length'], '.0f')} spl {_fmt(row['spl'])}")
             if update % cfg.train.checkpoint_every == 0:
-                ckpt.save(state, cfg, update * learner.frames_per_update)
+                ckpt.save(state, cfg, update * per_update)
         clean_exit = True
     finally:
         signal.signal(signal.SIGINT, previous)
@@ -128,10 +133,10 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         # After a failure the state handed to `update` is gone (its buffers are donated):
         # the last checkpoint stays the run's last good state.
         if clean_exit:
-            saved = ckpt.save(state, cfg, int(state.update) * learner.frames_per_update)
+            saved = ckpt.save(state, cfg, int(state.update) * per_update)
             log(f"checkpoint at update {saved} in {ckpt.directory}")
         ckpt.close()
-    return learner, state, row
+    return env, state, row
 
 
 def _modules(paths) -> str:

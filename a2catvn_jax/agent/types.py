@@ -1,0 +1,88 @@
+"""The typed data the agent passes around: network inputs, rollouts, agent and training state.
+
+Sequences are time-major: `[T, B, ...]`. A rollout of T steps holds T+1 network
+inputs (the last one is the state the returns bootstrap from) and T steps.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import jax.numpy as jnp
+from flax import struct
+
+
+@struct.dataclass
+class Inputs:
+    """What the network reads at one step, per agent: leaves [B] (or [T+1, B]).
+
+    rgb [..., H, W, 3] uint8 observation; target [...] int32 index of the target image
+    (into the environment's `target_images()`); prev_action int32; prev_reward float32;
+    reset bool: an episode starts here, the memory core is cleared before this step.
+    """
+
+    rgb: jnp.ndarray
+    target: jnp.ndarray
+    prev_action: jnp.ndarray
+    prev_reward: jnp.ndarray
+    reset: jnp.ndarray
+
+
+@struct.dataclass
+class Transition:
+    """A rollout of T steps in B environments (what the replay buffer stores).
+
+    The network inputs of T+1 steps, [T+1, B] (fields as in `Inputs`; the last step is
+    the state the returns bootstrap from), and of each of the T steps taken: action
+    int32 [T, B], reward float32 [T, B], done bool [T, B] (the step ended an episode).
+    """
+
+    rgb: jnp.ndarray
+    target: jnp.ndarray
+    prev_action: jnp.ndarray
+    prev_reward: jnp.ndarray
+    reset: jnp.ndarray
+    action: jnp.ndarray
+    reward: jnp.ndarray
+    done: jnp.ndarray
+
+    @property
+    def inputs(self) -> Inputs:
+        return Inputs(self.rgb, self.target, self.prev_action, self.prev_reward, self.reset)
+
+    @classmethod
+    def of(cls, inputs: Inputs, action, reward, done) -> "Transition":
+        return cls(inputs.rgb, inputs.target, inputs.prev_action, inputs.prev_reward, inputs.reset, action, reward, done)
+
+
+@struct.dataclass
+class FrameTruth:
+    """Depth and segmentation ground truth of frames at auxiliary resolution [..., a, a]:
+    depth in metres * DEPTH_SCALE; segmentation class colours [..., a, a, 3] in [0, 1]
+    (or class ids [..., a, a]). None where the loss is off."""
+
+    depth: Optional[jnp.ndarray] = None
+    segmentation: Optional[jnp.ndarray] = None
+
+
+@struct.dataclass
+class AgentState:
+    """What the agent carries between steps, per environment [B]."""
+
+    carry: Any  # memory core state
+    prev_action: jnp.ndarray  # int32
+    prev_reward: jnp.ndarray  # float32
+    reset: jnp.ndarray  # bool: clear the core state before the next step (a new episode began)
+
+
+@struct.dataclass
+class TrainState:
+    """Everything a run needs to continue exactly: checkpointed whole."""
+
+    params: Any
+    opt_state: Any
+    env_state: Any
+    agent: AgentState
+    replay: Any  # replay.Replay of Transitions, or None when no replay loss is on
+    key: jnp.ndarray  # uint32 [2]
+    update: jnp.ndarray  # int32: updates done so far

@@ -1,0 +1,274 @@
+"""A2CAT-VN's training step: batched A2C with an off-policy critic, UNREAL and
+visual-navigation auxiliary tasks, in one jit-compiled update.
+
+`make_update(env, networks, cfg)` returns `(init, update)`:
+`init(key) -> TrainState` and `update(TrainState) -> (TrainState, metrics)`, which does
+everything of one update inside `jax.jit`:
+
+1. collect a rollout of `rollout_length` steps in all B environments (the policy
+   samples, the environment steps and renders; `acting.rollout`);
+2. write it to the replay buffer (when a replay loss is on);
+3. compute the losses (`losses.py`): actor, critic and entropy on the rollout with
+   returns bootstrapped at its end (paper eq. 1-3); off-policy critic and pixel
+   control on sequences sampled from the replay buffer; reward prediction on replay
+   windows balanced between zero and non-zero final reward; depth, observation and
+   target segmentation on the rollout's frames;
+4. sum them with the configured weights, clip the global gradient norm and apply
+   RMSprop with the (linearly decaying) learning rate.
+
+A loss whose weight is 0 is not traced at all, so plain A2C, A2C+UNREAL and A2CAT-VN
+are three configurations of this one code path; with no replay loss on there is no
+replay buffer either.
+
+The memory core's state is carried from one rollout to the next and cleared at the
+first step of every episode. With `train.curriculum` the environment's complexity tau
+follows a linear schedule in the frame count, set at the start of every update (data,
+not a compile-time constant). Sequences are time-major: `[T, B, ...]`.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Callable, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import optax
+from jax.sharding import NamedSharding, PartitionSpec
+
+from a2catvn_jax.agent import losses
+from a2catvn_jax.agent import replay as replay_lib
+from a2catvn_jax.agent.acting import actor_critic_sequence, initial_agent, rollout, unroll
+from a2catvn_jax.agent.networks import RP_FRAMES, VN_HEADS, Networks, Params, apply_flat
+from a2catvn_jax.agent.types import FrameTruth, TrainState, Transition
+from a2catvn_jax.config import Config
+from a2catvn_jax.env.world import SEGMENTATION_COLORS
+
+
+def frames_per_update(cfg: Config) -> int:
+    """Agent steps one update collects: rollout length x environments."""
+    return cfg.train.rollout_length * cfg.env.num_envs
+
+
+def total_updates(cfg: Config) -> int:
+    """Updates of a whole run: `train.total_frames` rounded up to whole updates."""
+    return math.ceil(cfg.train.total_frames / frames_per_update(cfg))
+
+
+def uses_replay(cfg: Config) -> bool:
+    w = cfg.train.loss_weights
+    return w.off_policy_critic > 0 or w.pixel_control > 0 or w.reward_prediction > 0
+
+
+def vn_heads_on(cfg: Config) -> tuple[str, ...]:
+    """The depth / segmentation heads whose loss has a non-zero weight."""
+    return tuple(h for h in VN_HEADS if getattr(cfg.train.loss_weights, h) > 0)
+
+
+def learning_rate_schedule(cfg: Config) -> optax.Schedule:
+    """lr * (f_max - f) / f_max (paper), or a constant."""
+    tc = cfg.train
+    if tc.lr_schedule == "linear":
+        return optax.linear_schedule(tc.learning_rate, 0.0, total_updates(cfg))
+    return optax.constant_schedule(tc.learning_rate)
+
+
+def make_optimizer(cfg: Config) -> optax.GradientTransformation:
+    """Global gradient-norm clipping, then RMSprop (eps outside the square root)."""
+    tc = cfg.train
+    return optax.chain(
+        optax.clip_by_global_norm(tc.max_grad_norm),
+        optax.rmsprop(learning_rate_schedule(cfg), decay=tc.rmsprop_decay, eps=tc.rmsprop_eps, eps_in_sqrt=False),
+    )
+
+
+def complexity(cfg: Config, frames):
+    """Curriculum complexity tau after `frames` frames (paper: 0.3 -> 1.0 from 5M to 10M frames)."""
+    tc = cfg.train
+    if not tc.curriculum:
+        return jnp.float32(cfg.env.complexity)
+    (t0, t1), (f0, f1) = tc.curriculum_complexity, tc.curriculum_frames
+    frac = jnp.clip((jnp.asarray(frames, jnp.float32) - f0) / max(f1 - f0, 1), 0.0, 1.0)
+    return jnp.float32(t0) + (t1 - t0) * frac
+
+
+def segmentation_colors(cfg: Config):
+    """The class colours [C, 3] in [0, 1] that segmentation targets are encoded with, or
+    None for class-id targets (`agent.segmentation_loss=cross_entropy`)."""
+    if cfg.agent.segmentation_loss == "cross_entropy":
+        return None
+    return jnp.asarray(SEGMENTATION_COLORS, jnp.float32) / 255.0
+
+
+def frame_truth(cfg: Config, obs: dict) -> FrameTruth:
+    """Depth and segmentation ground truth of frames (obs["depth"], obs["segmentation"]
+    [N, H, W]) at auxiliary resolution, for the losses that are on."""
+    heads, f = vn_heads_on(cfg), cfg.train.aux_downsize
+    depth = losses.depth_targets(obs["depth"], f) if "depth" in heads else None
+    seg = losses.segmentation_targets(obs["segmentation"], f, segmentation_colors(cfg)) if "segmentation" in heads else None
+    return FrameTruth(depth, seg)
+
+
+def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: FrameTruth, target_seg) -> dict:
+    """Depth, observation and target segmentation losses (those with a non-zero weight)
+    of conv4 maps [..., g, g, c4] against `truth` and the targets' segmentation truth
+    `target_seg` [..., a, a(, 3)]."""
+    heads = vn_heads_on(cfg)
+    if not heads:
+        return {}
+    pred = apply_flat(lambda x: networks.vn_heads(params, x, heads), conv4, conv4.ndim - 3)
+    terms = {}
+    if "depth" in pred:
+        terms["depth"] = losses.mse(pred["depth"], truth.depth)
+    if "segmentation" in pred:
+        terms["segmentation"] = losses.segmentation_loss(pred["segmentation"], truth.segmentation)
+    if "target_segmentation" in pred:
+        terms["target_segmentation"] = losses.segmentation_loss(pred["target_segmentation"], target_seg)
+    return terms
+
+
+def replay_terms(cfg: Config, networks: Networks, params: Params, target_feats, replay: replay_lib.Replay, key) -> dict:
+    """Off-policy critic, pixel control and reward prediction losses (those with a
+    non-zero weight) on sequences and windows sampled from the replay buffer."""
+    tc, w = cfg.train, cfg.train.loss_weights
+    k_seq, k_rp = jax.random.split(key)
+    terms = {}
+    n = tc.replay_batch
+    if w.off_policy_critic > 0 or w.pixel_control > 0:
+        seq, carry0 = replay_lib.sample_sequences(replay, k_seq, n)
+        _, out = unroll(networks, params, target_feats, seq.inputs, carry0)
+        if w.off_policy_critic > 0:
+            _, values = actor_critic_sequence(networks, params, out)
+            terms["off_policy_critic"] = losses.off_policy_critic_loss(values, seq.reward, seq.done, tc.gamma)
+        if w.pixel_control > 0:
+            q = apply_flat(lambda x: networks.pixel_control(params, x), out)
+            pc = jax.vmap(losses.pixel_control_loss, in_axes=(1, 1, 1, 1, None, None))(
+                seq.rgb, seq.action, seq.done, q, tc.pixel_control_gamma, tc.pixel_control_cell
+            )
+            terms["pixel_control"] = jnp.mean(pc)
+    if w.reward_prediction > 0:
+        data = replay.data
+        win, reward = replay_lib.sample_reward_windows(replay, k_rp, n, RP_FRAMES, data.reward, data.reset)
+        flat = lambda x: x.reshape((n * RP_FRAMES,) + x.shape[2:])  # noqa: E731
+        conv4, _ = networks.encode(params, flat(win.rgb), target_feats[flat(win.target)])
+        logits = networks.reward_prediction(params, conv4.reshape((n, RP_FRAMES) + conv4.shape[1:]))
+        terms["reward_prediction"] = losses.reward_prediction_loss(logits, reward)
+    return terms
+
+
+def transition_example(cfg: Config, batch: int) -> Transition:
+    """A rollout of zeros, shaped and typed as `acting.rollout` gives them."""
+    L, size = cfg.train.rollout_length + 1, cfg.env.render.image_size
+    zeros = lambda shape, dtype: jnp.zeros(shape, dtype)  # noqa: E731
+    return Transition(
+        rgb=zeros((L, batch, size, size, 3), jnp.uint8), target=zeros((L, batch), jnp.int32),
+        prev_action=zeros((L, batch), jnp.int32), prev_reward=zeros((L, batch), jnp.float32),
+        reset=zeros((L, batch), bool), action=zeros((L - 1, batch), jnp.int32),
+        reward=zeros((L - 1, batch), jnp.float32), done=zeros((L - 1, batch), bool),
+    )
+
+
+class Targets(NamedTuple):
+    """The distinct target images [K, H, W, 3] uint8 and their segmentation truth at
+    auxiliary resolution [K, a, a(, 3)] (`Inputs.target` indexes both)."""
+
+    rgb: jnp.ndarray
+    segmentation: jnp.ndarray
+
+
+def targets_of(cfg: Config, env) -> Targets:
+    images = env.target_images()
+    colors = segmentation_colors(cfg)
+    return Targets(images["rgb"], losses.segmentation_targets(images["segmentation"], cfg.train.aux_downsize, colors))
+
+
+def loss(cfg: Config, networks: Networks, targets: Targets, params: Params, traj: Transition, truth: FrameTruth,
+         carry0, replay: Optional[replay_lib.Replay], key):
+    """(total loss, per-term losses) of one rollout `traj` [T(+1), B] started from core state
+    `carry0`, its frames' ground truth, and (when given) samples of the replay buffer."""
+    tc, w = cfg.train, cfg.train.loss_weights
+    target_feats = networks.target_stream(params, targets.rgb)
+    conv4, out = unroll(networks, params, target_feats, traj.inputs, carry0)
+    logits, values = actor_critic_sequence(networks, params, out)
+    returns = losses.bootstrapped_returns(traj.reward, traj.done, jax.lax.stop_gradient(values[-1]), tc.gamma)
+    actor, critic, neg_entropy = losses.actor_critic_losses(logits[:-1], values[:-1], traj.action, returns)
+    terms = {"actor": actor, "critic": critic, "entropy": neg_entropy}
+    terms.update(vn_terms(cfg, networks, params, conv4, truth, targets.segmentation[traj.target]))
+    if replay is not None:
+        terms.update(replay_terms(cfg, networks, params, target_feats, replay, key))
+    total = sum(getattr(w, name) * value for name, value in terms.items())
+    return total, terms
+
+
+class UpdateFns(NamedTuple):
+    """`init(key, params=None) -> TrainState` (fresh parameters unless given) and the
+    jitted `update(TrainState) -> (TrainState, metrics)` (its argument is donated)."""
+
+    init: Callable
+    update: Callable
+
+
+def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
+    """The jitted training step of configuration `cfg` in `env` (see the module docstring)."""
+    tc = cfg.train
+    T, B = tc.rollout_length, env.num_envs
+    optimizer = make_optimizer(cfg)
+    schedule = learning_rate_schedule(cfg)
+    replay_slots = max(1, tc.replay_size // T)
+    targets = targets_of(cfg, env)
+    truth = lambda obs: frame_truth(cfg, obs)  # noqa: E731
+
+    def init(key, params: Optional[Params] = None) -> TrainState:
+        k_param, k_env, k_train = jax.random.split(key, 3)
+        params = networks.init(k_param) if params is None else params
+        env_state = env.reset(k_env, complexity=complexity(cfg, 0))
+        agent = initial_agent(networks, B)
+        replay = replay_lib.init(transition_example(cfg, B), agent.carry, replay_slots) if uses_replay(cfg) else None
+        return TrainState(params, optimizer.init(params), env_state, agent, replay, k_train, jnp.zeros((), jnp.int32))
+
+    def update(ts: TrainState):
+        key, k_roll, k_loss = jax.random.split(ts.key, 3)
+        carry0 = ts.agent.carry
+        tau = complexity(cfg, ts.update * (T * B))
+        env_state = env.set_complexity(ts.env_state, tau) if tc.curriculum else ts.env_state
+        target_feats = networks.target_stream(ts.params, targets.rgb)
+        traj, truth_seq, env_state, agent, stats = rollout(env, networks, ts.params, target_feats, env_state, ts.agent,
+                                                           k_roll, T, truth)
+        replay = ts.replay
+        if replay is not None:
+            replay = replay_lib.add(replay, traj, carry0)
+        grad_fn = jax.value_and_grad(functools.partial(loss, cfg, networks, targets), has_aux=True)
+        (total, terms), grads = grad_fn(ts.params, traj, truth_seq, carry0, replay, k_loss)
+        updates, opt_state = optimizer.update(grads, ts.opt_state, ts.params)
+        params = optax.apply_updates(ts.params, updates)
+        metrics = {f"loss/{k}": v for k, v in terms.items()}
+        metrics.update({
+            "loss/total": total,
+            "grad_norm": optax.tree.norm(grads),
+            "learning_rate": schedule(ts.update),
+            "complexity": tau,
+            **stats,
+        })
+        return TrainState(params, opt_state, env_state, agent, replay, key, ts.update + 1), metrics
+
+    return UpdateFns(jax.jit(init), jax.jit(update, donate_argnums=0))
+
+
+def shard(ts: TrainState, mesh, axis: str = "batch") -> TrainState:
+    """`ts` placed on `mesh` with its environment axis split over the mesh axis `axis`
+    (environment and agent state, the replay buffer's environment axis) and everything
+    else replicated. `update` keeps that layout: each device steps, renders and runs the
+    network for its share of the environments, and gradients are reduced across them."""
+    tm = jax.tree_util.tree_map
+    replicated = NamedSharding(mesh, PartitionSpec())
+
+    def along(dim):
+        return lambda _: NamedSharding(mesh, PartitionSpec(*([None] * dim), axis))
+
+    replay = None
+    if ts.replay is not None:
+        replay = replay_lib.Replay(tm(along(2), ts.replay.data), tm(along(1), ts.replay.carry), replicated)
+    spec = TrainState(tm(lambda _: replicated, ts.params), tm(lambda _: replicated, ts.opt_state),
+                      tm(along(0), ts.env_state), tm(along(0), ts.agent), replay, replicated, replicated)
+    return jax.device_put(ts, spec)
