@@ -1,15 +1,9 @@
 """Scenes: data model, procedural generators and MJCF conversion."""
 
-from .generate import (
-    AGENT_RADIUS,
-    GENERATORS,
-    HOUSE_ROOM_TYPES,
-    free_space_ok,
-    house,
-    make_scenes,
-    maze,
-    single_room,
-)
+from .builder import AGENT_RADIUS
+from .generate import GENERATORS, make_scenes
+from .houses import HOUSE_ROOM_TYPES, house
+from .mazes import maze
 from .mjcf import (
     AGENT_BODY,
     AGENT_CAMERA,
@@ -24,7 +18,9 @@ from .mjcf import (
     scene_from_mjcf,
     scene_to_mjcf,
 )
+from .placement import free_space_ok
 from .plot import plot_topdown, save_topdown
+from .rooms import single_room
 from .spec import (
     CLASS_ID,
     CLASS_NAMES,
