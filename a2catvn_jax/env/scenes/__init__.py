@@ -1,6 +1,7 @@
 """Scenes: data model, procedural generators and MJCF conversion."""
 
 from .builder import AGENT_RADIUS
+from .errors import SceneError
 from .generate import GENERATORS, make_scenes
 from .houses import HOUSE_ROOM_TYPES, house
 from .mazes import maze
@@ -16,6 +17,7 @@ from .mjcf import (
     layout_of,
     ordered_geoms,
     scene_from_mjcf,
+    scene_from_mjcf_file,
     scene_to_mjcf,
 )
 from .placement import free_space_ok
@@ -53,6 +55,7 @@ __all__ = [
     "Room",
     "STRUCTURAL_CLASSES",
     "Scene",
+    "SceneError",
     "class_colors",
     "class_from_name",
     "compile_scene",
@@ -67,6 +70,7 @@ __all__ = [
     "plot_topdown",
     "save_topdown",
     "scene_from_mjcf",
+    "scene_from_mjcf_file",
     "scene_to_mjcf",
     "single_room",
 ]
