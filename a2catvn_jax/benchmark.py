@@ -32,6 +32,7 @@ import time
 
 import jax
 
+from a2catvn_jax import cli
 from a2catvn_jax.bench.throughput import bench_env, bench_mujoco_gl, bench_network, bench_train
 
 
@@ -60,32 +61,33 @@ def main(argv=None) -> None:
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args(argv)
     _header()
-    if args.what == "train":
-        rows = []
-        print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'env fps':>9} {'env share':>10}")
-        for name in args.configs:
-            extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
-            r = bench_train(name, extra + list(args.overrides), args.updates)
-            rows.append(r)
-            print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
-                  f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
-    elif args.what == "network":
-        r = bench_network(args.resolution, args.frames, args.targets, args.repeats, args.overrides)
-        rows = [r]
-        print(f"forward+backward, {args.frames} frames at {args.resolution}x{args.resolution}, frames/s:")
-        print(f"  JAX, target stream once per distinct target ({args.targets}): {r['jax_fps']:.0f}")
-        print(f"  JAX, both streams every frame:                      {r['jax_per_frame_fps']:.0f}")
-        if r["torch_fps"] is None:
-            print("  PyTorch: not installed (pip install torch==2.13.0)")
+    with cli.errors(parser, code=1):
+        if args.what == "train":
+            rows = []
+            print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'env fps':>9} {'env share':>10}")
+            for name in args.configs:
+                extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
+                r = bench_train(name, extra + list(args.overrides), args.updates)
+                rows.append(r)
+                print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
+                      f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
+        elif args.what == "network":
+            r = bench_network(args.resolution, args.frames, args.targets, args.repeats, args.overrides)
+            rows = [r]
+            print(f"forward+backward, {args.frames} frames at {args.resolution}x{args.resolution}, frames/s:")
+            print(f"  JAX, target stream once per distinct target ({args.targets}): {r['jax_fps']:.0f}")
+            print(f"  JAX, both streams every frame:                      {r['jax_per_frame_fps']:.0f}")
+            if r["torch_fps"] is None:
+                print("  PyTorch: not installed (pip install torch==2.13.0)")
+            else:
+                print(f"  PyTorch {__import__('torch').__version__}, both streams every frame:      {r['torch_fps']:.0f}")
+                print(f"  ratio JAX as trained / PyTorch: {r['jax_fps'] / r['torch_fps']:.2f}; "
+                      f"like for like: {r['jax_per_frame_fps'] / r['torch_fps']:.2f}")
         else:
-            print(f"  PyTorch {__import__('torch').__version__}, both streams every frame:      {r['torch_fps']:.0f}")
-            print(f"  ratio JAX as trained / PyTorch: {r['jax_fps'] / r['torch_fps']:.2f}; "
-                  f"like for like: {r['jax_per_frame_fps'] / r['torch_fps']:.2f}")
-    else:
-        rows = _bench_env_table(args)
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rows, f, indent=1)
+            rows = _bench_env_table(args)
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(rows, f, indent=1)
 
 
 def _bench_env_table(args) -> list:

@@ -646,7 +646,7 @@ def test_broken_mjcf(tmp_path):
     with pytest.raises(ValueError, match="MJCF does not compile"):
         NavEnv(cfg.env)
     cfg = load_config(None, BASE + ["env.scene.kind=mjcf", f"env.scene.mjcf_path={tmp_path / 'missing.xml'}"])
-    with pytest.raises(ValueError, match="mjcf_path"):
+    with pytest.raises(ValueError, match="missing.xml: cannot read the MJCF file"):
         NavEnv(cfg.env)
 
 

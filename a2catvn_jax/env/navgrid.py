@@ -18,6 +18,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
+from a2catvn_jax.env.scenes.errors import SceneError
 from a2catvn_jax.env.scenes.mjcf import geom_aabb
 from a2catvn_jax.env.scenes.spec import Scene
 
@@ -87,9 +88,10 @@ def build(scene: Scene, resolution: float, agent_radius: float, body_height: flo
         rx0, ry0, rx1, ry1 = room.rect
         grid.room[(c[..., 0] >= rx0) & (c[..., 0] < rx1) & (c[..., 1] >= ry0) & (c[..., 1] < ry1)] = k
     if not grid.free.any():
-        raise ValueError(
-            f"scene {scene.name!r} has no free floor for an agent of radius {agent_radius} m "
-            f"at grid resolution {resolution} m"
+        raise SceneError(
+            f"{scene.name}: no free floor for an agent of radius {agent_radius} m "
+            f"at grid resolution {resolution} m (its floor is {x1 - x0:.2f} x {y1 - y0:.2f} m; the agent's "
+            f"centre stays {agent_radius} m away from the floor's edges and from every obstacle)"
         )
     return grid
 

@@ -20,6 +20,7 @@ from a2catvn_jax.config import EnvConfig
 from a2catvn_jax.env import geometry as geometry_lib
 from a2catvn_jax.env import navgrid, render
 from a2catvn_jax.env.scenes import generate, mjcf
+from a2catvn_jax.env.scenes.errors import SceneError
 from a2catvn_jax.env.scenes.mjcf import geom_aabb
 from a2catvn_jax.env.scenes.spec import STRUCTURAL_CLASSES, Scene, class_colors
 
@@ -69,12 +70,7 @@ def make_scenes(cfg: EnvConfig, seed_offset: int = 0) -> list[Scene]:
     sc = cfg.scene
     seed = sc.seed + seed_offset
     if sc.kind == "mjcf":
-        try:
-            with open(sc.mjcf_path) as f:
-                xml = f.read()
-        except OSError as e:
-            raise ValueError(f"env.scene.mjcf_path: cannot read {sc.mjcf_path!r}: {e}") from e
-        return [mjcf.scene_from_mjcf(xml, name=sc.mjcf_path)]
+        return [mjcf.scene_from_mjcf_file(sc.mjcf_path)]
     if sc.kind == "house":
         return generate.make_scenes("house", sc.num_scenes, seed, grid=tuple(sc.grid), room_size=tuple(sc.room_size), height=sc.height)
     if sc.kind == "room":
@@ -125,7 +121,7 @@ class World:
                 goals.append(Goal(near, pose, k, "image"))
             elif cfg.goal == "room":
                 if not scene.rooms:
-                    raise ValueError(f"scene {scene.name!r} has no rooms: room-type goals need houses")
+                    raise SceneError(f"scene {scene.name!r} has no rooms: room-type goals need houses")
                 rtype = scene.rooms[rng.integers(len(scene.rooms))].type
                 rooms = [i for i, r in enumerate(scene.rooms) if r.type == rtype]
                 success = np.isin(grid.room, rooms)
@@ -151,7 +147,7 @@ class World:
         cfg, scene, grid = self.cfg, self.scenes[k], self.grids[k]
         objs = [g for g in scene.geoms if g.cls not in STRUCTURAL_CLASSES and g.cls != "rug"]
         if not objs:
-            raise ValueError(f"scene {scene.name!r} has no objects for object goals")
+            raise SceneError(f"scene {scene.name!r} has no objects for object goals")
         model = self.models[k]
         data = mujoco.MjData(model)
         mujoco.mj_forward(model, data)
@@ -175,7 +171,7 @@ class World:
                     yaw = np.arctan2(vec[1], vec[0])
                     tilt = np.clip(np.arctan2(vec[2], np.hypot(vec[0], vec[1])), -0.5, 0.5)
                     return Goal(success, np.array([eye[0], eye[1], yaw, tilt]), k, obj.name)
-        raise ValueError(f"scene {scene.name!r}: found no visible object for an object goal")
+        raise SceneError(f"scene {scene.name!r}: found no visible object for an object goal")
 
     # -- arrays ---------------------------------------------------------------------
 

@@ -1,15 +1,10 @@
 """Scenes: data model, procedural generators and MJCF conversion."""
 
-from .generate import (
-    AGENT_RADIUS,
-    GENERATORS,
-    HOUSE_ROOM_TYPES,
-    free_space_ok,
-    house,
-    make_scenes,
-    maze,
-    single_room,
-)
+from .builder import AGENT_RADIUS
+from .errors import SceneError
+from .generate import GENERATORS, make_scenes
+from .houses import HOUSE_ROOM_TYPES, house
+from .mazes import maze
 from .mjcf import (
     AGENT_BODY,
     AGENT_CAMERA,
@@ -22,9 +17,12 @@ from .mjcf import (
     layout_of,
     ordered_geoms,
     scene_from_mjcf,
+    scene_from_mjcf_file,
     scene_to_mjcf,
 )
+from .placement import free_space_ok
 from .plot import plot_topdown, save_topdown
+from .rooms import single_room
 from .spec import (
     CLASS_ID,
     CLASS_NAMES,
@@ -57,6 +55,7 @@ __all__ = [
     "Room",
     "STRUCTURAL_CLASSES",
     "Scene",
+    "SceneError",
     "class_colors",
     "class_from_name",
     "compile_scene",
@@ -71,6 +70,7 @@ __all__ = [
     "plot_topdown",
     "save_topdown",
     "scene_from_mjcf",
+    "scene_from_mjcf_file",
     "scene_to_mjcf",
     "single_room",
 ]

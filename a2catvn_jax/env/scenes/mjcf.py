@@ -5,17 +5,20 @@
 type + index within the type. With a `layout` every type is padded with invisible,
 non-colliding geoms up to a fixed count, so that scenes of a batch compile to models
 with identical geom arrays. `scene_from_mjcf` reads a user's MJCF back into a
-`Scene`, checking that it only uses what the renderer supports.
+`Scene`, checking that it only uses what the renderer supports; `scene_from_mjcf_file`
+does the same for a file. A scene that cannot be used raises `SceneError`.
 """
 
 from __future__ import annotations
 
+import os
 from typing import Optional
 from xml.sax.saxutils import quoteattr
 
 import mujoco
 import numpy as np
 
+from .errors import SceneError
 from .spec import CLASS_NAMES, GEOM_TYPES, Geom, Scene, class_of_name
 
 PAD_PREFIX = "pad_"
@@ -168,14 +171,19 @@ def scene_to_mjcf(
     return "\n".join(lines)
 
 
+def _one_line(message) -> str:
+    """`message` with every run of whitespace (newlines included) made one space."""
+    return " ".join(str(message).split())
+
+
 def compile_scene(xml: str) -> mujoco.MjModel:
-    """Compile MJCF text with MuJoCo; errors become ValueError("MJCF does not compile: ...")."""
+    """Compile MJCF text with MuJoCo; errors become SceneError("MJCF does not compile: ...")."""
     if not isinstance(xml, str):
         raise ValueError(f"MJCF must be a string, got {type(xml).__name__}")
     try:
         return mujoco.MjModel.from_xml_string(xml)
     except Exception as e:  # mujoco raises ValueError with the parser/compiler message
-        raise ValueError(f"MJCF does not compile: {e}") from e
+        raise SceneError(f"MJCF does not compile: {_one_line(e)}") from e
 
 
 def _type_name(t: int) -> str:
@@ -216,9 +224,32 @@ def scene_from_mjcf(xml: str, name: str = "user") -> Scene:
     names) and invisible geoms (alpha 0, no material) are skipped. At least one geom
     must be of class floor. bounds: xy union of the floor geoms' boxes; height: lowest
     ceiling bottom if there is a ceiling, else highest geom top. The result has no
-    rooms and closed=False.
+    rooms and closed=False. Raises `SceneError` saying which geom is at fault and why.
     """
-    m = compile_scene(xml)
+    return _scene_of_model(compile_scene(xml), name, where="")
+
+
+def scene_from_mjcf_file(path: str | os.PathLike, name: Optional[str] = None) -> Scene:
+    """A Scene from a user's MJCF file (see `scene_from_mjcf`); name: the path unless given.
+
+    The file is compiled from its path, so meshes, textures and includes it names
+    resolve relative to it. Every `SceneError` message starts with the path.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as e:
+        raise SceneError(f"{path}: cannot read the MJCF file: {e.strerror}") from None
+    try:
+        model = mujoco.MjModel.from_xml_path(path)
+    except Exception as e:  # mujoco raises ValueError with the parser/compiler message
+        raise SceneError(f"{path}: MJCF does not compile: {_one_line(e)}") from e
+    return _scene_of_model(model, path if name is None else name, where=f"{path}: ")
+
+
+def _scene_of_model(m: mujoco.MjModel, name: str, where: str) -> Scene:
+    """The Scene of a compiled user model; `where` starts every error message."""
     d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
     geoms: list[Geom] = []
@@ -235,26 +266,26 @@ def scene_from_mjcf(xml: str, name: str = "user") -> Scene:
         if int(m.body_weldid[body]) != 0:
             bname = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body) or f"#{body}"
             why = "is a mocap body" if m.body_mocapid[body] >= 0 else "can move (it or an ancestor has joints)"
-            raise ValueError(
-                f"{label} is not static: its body {bname!r} {why}; scene geoms must be static "
+            raise SceneError(
+                f"{where}{label} is not static: its body {bname!r} {why}; scene geoms must be static "
                 "(in the world body or a body welded to it)"
             )
         gtype = int(m.geom_type[i])
         if gtype not in _TYPE_OF_MJ:
-            raise ValueError(
-                f"{label} has unsupported type {_type_name(gtype)!r}; supported geom types: "
+            raise SceneError(
+                f"{where}{label} has unsupported type {_type_name(gtype)!r}; supported geom types: "
                 f"{', '.join(GEOM_TYPES)} (use a thin box instead of a plane, a capsule or box "
                 "instead of a cylinder, primitives instead of meshes)"
             )
         if not gname:
-            raise ValueError(
-                f"{label} has no name; name every geom after its semantic class, e.g. 'wall_3' "
+            raise SceneError(
+                f"{where}{label} has no name; name every geom after its semantic class, e.g. 'wall_3' "
                 f"or 'bed/frame', with class one of: {', '.join(GEOM_CLASSES)}"
             )
         cls = class_from_name(gname)
         if cls is None:
-            raise ValueError(
-                f"{label} does not name a known semantic class (its name must be '<class>', "
+            raise SceneError(
+                f"{where}{label} does not name a known semantic class (its name must be '<class>', "
                 f"'<class>_...' or '<class>/...'); valid classes: {', '.join(GEOM_CLASSES)}"
             )
         quat = np.zeros(4)
@@ -274,8 +305,8 @@ def scene_from_mjcf(xml: str, name: str = "user") -> Scene:
         )
     floors = [g for g in geoms if g.cls == "floor"]
     if not floors:
-        raise ValueError(
-            "MJCF has no geom of class floor; name the floor geom(s) 'floor' or 'floor_<k>' "
+        raise SceneError(
+            f"{where}MJCF has no geom of class floor; name the floor geom(s) 'floor' or 'floor_<k>' "
             "(a thin box whose top face is the walkable surface at z=0)"
         )
     boxes = [geom_aabb(g) for g in floors]
@@ -299,6 +330,7 @@ __all__ = [
     "layout_of",
     "ordered_geoms",
     "scene_from_mjcf",
+    "scene_from_mjcf_file",
     "scene_to_mjcf",
 ]
 
