@@ -280,6 +280,7 @@ class TrainConfig:
     pixel_control_gamma: float = 0.9
     pixel_control_cell: int = 4
     aux_downsize: int = 4  # depth / segmentation targets are downsized by this factor
+    timeout_bootstrap: bool = True  # a time-out bootstraps the returns from the critic; false: terminal (paper)
     loss_weights: LossWeights = field(default_factory=LossWeights)
     curriculum: bool = False  # complexity tau rises linearly between two frame counts (paper)
     curriculum_complexity: tuple[float, float] = (0.3, 1.0)  # tau before the first and after the second

@@ -76,16 +76,16 @@ def _scan_steps(env: NavEnv, state: State, actions):
     def body(s, a):
         s = env.step(s, a)
         rec = {
-            "pose": s.info["pose"],
-            "step": s.info["step"],
-            "path_length": s.info["path_length"],
+            "pose": s.info.pose,
+            "step": s.info.step,
+            "path_length": s.info.path_length,
             "done": s.done,
             "reward": s.reward,
             "success": s.metrics["success"],
             "truncated": s.metrics["truncated"],
-            "rgb": s.obs["rgb"],
-            "depth": s.obs["depth"],
-            "segmentation": s.obs["segmentation"],
+            "rgb": s.obs.rgb,
+            "depth": s.obs.depth,
+            "segmentation": s.obs.segmentation,
         }
         return s, rec
 
@@ -114,7 +114,7 @@ def _np(tree):
 
 def _all_poses(s0: State, rec) -> np.ndarray:
     """Poses [T + 1, B, 4]: the reset pose followed by the pose after every step."""
-    return np.concatenate([np.asarray(s0.info["pose"])[None], np.asarray(rec["pose"])], 0)
+    return np.concatenate([np.asarray(s0.info.pose)[None], np.asarray(rec["pose"])], 0)
 
 
 def _check_no_collisions(env: NavEnv, poses: np.ndarray, require_contact: bool = True):
@@ -264,8 +264,8 @@ def test_random_walks_never_enter_obstacles(request, which):
     # Agents do move.
     moved = np.linalg.norm(np.diff(poses[..., :2], axis=0), axis=-1)[~rec["done"]]
     assert moved.mean() > 0.05
-    assert float(np.asarray(traj["final"].info["path_length"]).mean()) > 1.0
-    # info["path_length"] accumulates exactly the distance travelled.
+    assert float(np.asarray(traj["final"].info.path_length).mean()) > 1.0
+    # info.path_length accumulates exactly the distance travelled.
     cont = ~rec["done"][1:]
     inc = (rec["path_length"][1:] - rec["path_length"][:-1])[cont]
     np.testing.assert_allclose(inc, np.linalg.norm(np.diff(rec["pose"][..., :2], axis=0), axis=-1)[cont], atol=1e-4)
@@ -278,21 +278,21 @@ def test_same_key_same_trajectory(env_full, reset_full, rollout_full, traj_full)
     actions = traj_full["actions"]
     s0 = reset_full(jax.random.PRNGKey(0), 1.0)
     for k in OBS_KEYS:
-        np.testing.assert_array_equal(np.asarray(s0.obs[k]), np.asarray(traj_full["s0"].obs[k]))
+        np.testing.assert_array_equal(np.asarray(getattr(s0.obs, k)), np.asarray(getattr(traj_full["s0"].obs, k)))
     final, rec = rollout_full(s0, actions)
     rec = _np(rec)
     for k in ("pose", "rgb", "depth", "reward", "done"):
         np.testing.assert_array_equal(rec[k], traj_full["rec"][k], err_msg=k)
     for k in OBS_KEYS:
-        np.testing.assert_array_equal(np.asarray(final.obs[k]), np.asarray(traj_full["final"].obs[k]))
+        np.testing.assert_array_equal(np.asarray(getattr(final.obs, k)), np.asarray(getattr(traj_full["final"].obs, k)))
 
     other = reset_full(jax.random.PRNGKey(1), 1.0)
-    assert not np.array_equal(np.asarray(other.info["pose"]), np.asarray(s0.info["pose"]))
-    assert not np.array_equal(np.asarray(other.obs["rgb"]), np.asarray(s0.obs["rgb"]))
+    assert not np.array_equal(np.asarray(other.info.pose), np.asarray(s0.info.pose))
+    assert not np.array_equal(np.asarray(other.obs.rgb), np.asarray(s0.obs.rgb))
     _, rec2 = rollout_full(other, actions)
     assert not np.array_equal(np.asarray(rec2["pose"]), rec["pose"])
     # The same start with a different key differs too (motion noise comes from the key).
-    keyed = s0.replace(info=dict(s0.info, key=other.info["key"]))
+    keyed = s0.replace(info=s0.info.replace(key=other.info.key))
     _, rec3 = rollout_full(keyed, actions)
     assert not np.array_equal(np.asarray(rec3["pose"][:20]), rec["pose"][:20])
 
@@ -309,58 +309,58 @@ def test_reset_shapes_dtypes_and_observations(env_full, reset_full):
         "segmentation": ((B, IMG, IMG), np.uint8),
         "segmentation_rgb": ((B, IMG, IMG, 3), np.uint8),
     }
-    assert set(s.obs) == set(OBS_KEYS)
+    assert {f.name for f in dataclasses.fields(s.obs)} == set(OBS_KEYS)
     for k, (shape, dtype) in shapes.items():
         for key in (k, "target_" + k):
-            assert s.obs[key].shape == shape, key
-            assert s.obs[key].dtype == dtype, key
+            assert getattr(s.obs, key).shape == shape, key
+            assert getattr(s.obs, key).dtype == dtype, key
     # The target index picks the observation's target out of the environment's distinct targets.
-    index = np.asarray(s.obs["target_index"])
+    index = np.asarray(s.obs.target_index)
     assert index.shape == (B,) and index.dtype == np.int32
     targets = env.target_images()
     assert targets["rgb"].shape[0] == env.num_targets
     for k, name in (("rgb", "target_rgb"), ("depth", "target_depth"), ("segmentation", "target_segmentation")):
-        np.testing.assert_array_equal(np.asarray(targets[k])[index], np.asarray(s.obs[name]))
+        np.testing.assert_array_equal(np.asarray(targets[k])[index], np.asarray(getattr(s.obs, name)))
     assert s.reward.shape == (B,) and s.reward.dtype == jnp.float32
     assert s.done.shape == (B,) and s.done.dtype == jnp.bool_ and not bool(s.done.any())
     info = _np(s.info)
-    assert info["scene"].dtype == np.int32 and info["goal"].dtype == np.int32
-    np.testing.assert_array_equal(info["scene"], np.arange(B) % env.num_scenes)
-    assert np.all((info["goal"] >= 0) & (info["goal"] < env.cfg.goals_per_scene))
-    assert info["pose"].shape == (B, 4) and info["pose"].dtype == np.float32
-    assert np.all(np.abs(info["pose"][:, 2]) <= np.pi + 1e-6) and np.all(info["pose"][:, 3] == 0)
-    np.testing.assert_array_equal(info["step"], 0)
-    np.testing.assert_array_equal(info["path_length"], 0)
-    np.testing.assert_array_equal(info["complexity"], 1.0)
+    assert info.scene.dtype == np.int32 and info.goal.dtype == np.int32
+    np.testing.assert_array_equal(info.scene, np.arange(B) % env.num_scenes)
+    assert np.all((info.goal >= 0) & (info.goal < env.cfg.goals_per_scene))
+    assert info.pose.shape == (B, 4) and info.pose.dtype == np.float32
+    assert np.all(np.abs(info.pose[:, 2]) <= np.pi + 1e-6) and np.all(info.pose[:, 3] == 0)
+    np.testing.assert_array_equal(info.step, 0)
+    np.testing.assert_array_equal(info.path_length, 0)
+    np.testing.assert_array_equal(info.complexity, 1.0)
     for k in ("success", "truncated", "episode_length", "episode_return", "fallback"):
         assert s.metrics[k].shape == (B,)
     w = env.world.arrays
-    sc, g = info["scene"], info["goal"]
-    np.testing.assert_array_equal(info["target_pose"], np.asarray(w.target_pose)[sc, g])
-    np.testing.assert_array_equal(np.asarray(s.obs["target_rgb"]), np.asarray(w.target_rgb)[sc, g])
-    np.testing.assert_array_equal(np.asarray(s.obs["target_depth"]), np.asarray(w.target_depth)[sc, g])
-    np.testing.assert_array_equal(np.asarray(s.obs["target_segmentation"]), np.asarray(w.target_seg)[sc, g])
+    sc, g = info.scene, info.goal
+    np.testing.assert_array_equal(info.target_pose, np.asarray(w.target_pose)[sc, g])
+    np.testing.assert_array_equal(np.asarray(s.obs.target_rgb), np.asarray(w.target_rgb)[sc, g])
+    np.testing.assert_array_equal(np.asarray(s.obs.target_depth), np.asarray(w.target_depth)[sc, g])
+    np.testing.assert_array_equal(np.asarray(s.obs.target_segmentation), np.asarray(w.target_seg)[sc, g])
     # Segmentation colours.
     assert np.all(SEGMENTATION_COLORS[0] == 0)
     np.testing.assert_array_equal(np.asarray(env.segmentation_rgb(jnp.zeros((), jnp.int32))), [0, 0, 0])
     for k in ("segmentation", "target_segmentation"):
-        seg = s.obs[k]
-        np.testing.assert_array_equal(np.asarray(s.obs[k + "_rgb"]), np.asarray(env.segmentation_rgb(seg)))
+        seg = getattr(s.obs, k)
+        np.testing.assert_array_equal(np.asarray(getattr(s.obs, k + "_rgb")), np.asarray(env.segmentation_rgb(seg)))
         assert np.asarray(seg).max() > 0
     # Inside a closed house every ray hits something.
-    assert np.all(np.asarray(s.obs["depth"]) > 0)
-    assert np.all(np.asarray(s.obs["segmentation"]) > 0)
+    assert np.all(np.asarray(s.obs.depth) > 0)
+    assert np.all(np.asarray(s.obs.segmentation) > 0)
     # The observation is the rendering at the agent's pose.
     render = jax.jit(env.render_pose)
     for b in (0, 5):
-        f = render(int(info["scene"][b]), info["pose"][b])
-        np.testing.assert_array_equal(np.asarray(f.cls), np.asarray(s.obs["segmentation"][b]))
-        np.testing.assert_allclose(np.asarray(f.depth), np.asarray(s.obs["depth"][b]), rtol=1e-5, atol=1e-5)
-        diff = np.abs(np.asarray(f.rgb, np.int32) - np.asarray(s.obs["rgb"][b], np.int32))
+        f = render(int(info.scene[b]), info.pose[b])
+        np.testing.assert_array_equal(np.asarray(f.cls), np.asarray(s.obs.segmentation[b]))
+        np.testing.assert_allclose(np.asarray(f.depth), np.asarray(s.obs.depth[b]), rtol=1e-5, atol=1e-5)
+        diff = np.abs(np.asarray(f.rgb, np.int32) - np.asarray(s.obs.rgb[b], np.int32))
         assert diff.max() <= 1
     # ... and not that of another agent.
-    f = render(int(info["scene"][0]), info["pose"][2])
-    assert not np.array_equal(np.asarray(f.depth), np.asarray(s.obs["depth"][0]))
+    f = render(int(info.scene[0]), info.pose[2])
+    assert not np.array_equal(np.asarray(f.depth), np.asarray(s.obs.depth[0]))
 
 
 # ---------------------------------------------------- 4. success, auto-reset, truncation
@@ -376,11 +376,11 @@ def test_success_auto_reset_and_truncation(env_exact, step_exact, reset_full):
     # Nobody starts inside their goal region.
     gs = np.asarray(w.goal_success)
     for b in range(B):
-        ii, jj = env.world.grids[info["scene"][b]].cell_of(info["pose"][b, :2])
-        assert not gs[info["scene"][b], info["goal"][b], ii, jj]
+        ii, jj = env.world.grids[info.scene[b]].cell_of(info.pose[b, :2])
+        assert not gs[info.scene[b], info.goal[b], ii, jj]
     # Teleport agent 0 onto its goal (the target image's pose is the goal centre).
-    pose = s.info["pose"].at[0].set(s.info["target_pose"][0])
-    s = s.replace(info=dict(s.info, pose=pose))
+    pose = s.info.pose.at[0].set(s.info.target_pose[0])
+    s = s.replace(info=s.info.replace(pose=pose))
     action = jnp.full((B,), tilt, jnp.int32)
 
     s1 = step_exact(s, action)
@@ -388,19 +388,19 @@ def test_success_auto_reset_and_truncation(env_exact, step_exact, reset_full):
     assert r1[0] == 1.0 and d1[0] and m1["success"][0] and not m1["truncated"][0]
     assert m1["episode_length"][0] == 1 and m1["episode_return"][0] == 1.0
     assert 0.0 < m1["episode_spl"][0] <= 1.0 + 1e-6
-    assert m1["episode_start_distance"][0] == info["start_distance"][0]
+    assert m1["episode_start_distance"][0] == info.start_distance[0]
     # Agent 0 was reset in the same step: a new episode, outside its new goal region.
-    assert i1["step"][0] == 0 and i1["path_length"][0] == 0 and i1["episode_return"][0] == 0
-    assert not np.array_equal(i1["key"][0], info["key"][0])
-    assert not np.allclose(i1["pose"][0, :2], info["target_pose"][0, :2])
-    ii, jj = env.world.grids[i1["scene"][0]].cell_of(i1["pose"][0, :2])
-    assert not gs[i1["scene"][0], i1["goal"][0], ii, jj]
-    np.testing.assert_array_equal(np.asarray(s1.obs["target_rgb"][0]), np.asarray(w.target_rgb)[i1["scene"][0], i1["goal"][0]])
+    assert i1.step[0] == 0 and i1.path_length[0] == 0 and i1.episode_return[0] == 0
+    assert not np.array_equal(i1.key[0], info.key[0])
+    assert not np.allclose(i1.pose[0, :2], info.target_pose[0, :2])
+    ii, jj = env.world.grids[i1.scene[0]].cell_of(i1.pose[0, :2])
+    assert not gs[i1.scene[0], i1.goal[0], ii, jj]
+    np.testing.assert_array_equal(np.asarray(s1.obs.target_rgb[0]), np.asarray(w.target_rgb)[i1.scene[0], i1.goal[0]])
     # Everybody else tilted in place: no reward, not done, one step further.
     assert np.all(r1[1:] == 0) and not d1[1:].any() and not m1["success"][1:].any()
-    np.testing.assert_array_equal(i1["step"][1:], 1)
-    np.testing.assert_array_equal(i1["pose"][1:, :2], info["pose"][1:, :2])
-    np.testing.assert_allclose(i1["pose"][1:, 3], np.deg2rad(30.0), atol=1e-6)
+    np.testing.assert_array_equal(i1.step[1:], 1)
+    np.testing.assert_array_equal(i1.pose[1:, :2], info.pose[1:, :2])
+    np.testing.assert_allclose(i1.pose[1:, 3], np.deg2rad(30.0), atol=1e-6)
 
     s2 = step_exact(s1, action)
     assert not bool(s2.done.any())
@@ -411,18 +411,18 @@ def test_success_auto_reset_and_truncation(env_exact, step_exact, reset_full):
     np.testing.assert_array_equal(r3[1:], 0.0)
     np.testing.assert_array_equal(m3["episode_length"][1:], 3)
     np.testing.assert_array_equal(m3["episode_spl"][1:], 0.0)
-    np.testing.assert_array_equal(i3["step"][1:], 0)
-    np.testing.assert_array_equal(i3["pose"][1:, 3], 0.0)  # fresh episodes, level camera
-    assert not d3[0] and not m3["truncated"][0] and i3["step"][0] == 2
+    np.testing.assert_array_equal(i3.step[1:], 0)
+    np.testing.assert_array_equal(i3.pose[1:, 3], 0.0)  # fresh episodes, level camera
+    assert not d3[0] and not m3["truncated"][0] and i3.step[0] == 2
     # Tilt saturates at max_tilt_deg.
-    np.testing.assert_allclose(np.asarray(s2.info["pose"][1:, 3]), np.deg2rad(env.cfg.max_tilt_deg), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(s2.info.pose[1:, 3]), np.deg2rad(env.cfg.max_tilt_deg), atol=1e-6)
 
     # Without noise, unobstructed moves are exactly the commanded displacement.
     moves = {n: np.asarray(m[:2], np.float64) for n, m in ACTION_SETS["full"]}
     order = ("forward", "backward", "left", "right")
     action = jnp.asarray([names.index(order[b % 4]) for b in range(B)], jnp.int32)
     s4 = step_exact(s3, action)
-    p3, p4 = np.asarray(s3.info["pose"], np.float64), np.asarray(s4.info["pose"], np.float64)
+    p3, p4 = np.asarray(s3.info.pose, np.float64), np.asarray(s4.info.pose, np.float64)
     live = ~np.asarray(s4.done)
     c, sn = np.cos(p3[:, 2]), np.sin(p3[:, 2])
     fl = np.stack([moves[order[b % 4]] for b in range(B)])
@@ -452,7 +452,7 @@ def test_complexity_is_data(env_full, env_exact, step_exact, reset_full):
         for seed in (10, 11):  # two batches of 32: 64 starts
             s = reset_full(jax.random.PRNGKey(seed), c)
             out.append(_np(s.info))
-        return {k: np.concatenate([o[k] for o in out]) for k in ("scene", "goal", "start_distance", "complexity")}
+        return {k: np.concatenate([getattr(o, k) for o in out]) for k in ("scene", "goal", "start_distance", "complexity")}
 
     easy, hard = starts(0.0), starts(1.0)
     assert reset_full._cache_size() == 1
@@ -470,17 +470,17 @@ def test_complexity_is_data(env_full, env_exact, step_exact, reset_full):
     # set_complexity changes the level of the episodes that follow.
     s = reset_full(jax.random.PRNGKey(12), 1.0)
     s = env.set_complexity(s, 0.0)
-    assert s.info["complexity"].shape == (B,) and s.info["complexity"].dtype == jnp.float32
-    np.testing.assert_array_equal(np.asarray(s.info["complexity"]), 0.0)
+    assert s.info.complexity.shape == (B,) and s.info.complexity.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(s.info.complexity), 0.0)
     tilt = jnp.full((B,), env_exact.action_names.index("tilt_up"), jnp.int32)
     for _ in range(3):  # episodes of env_exact are 3 steps long
         s = step_exact(s, tilt)
     info = _np(s.info)
-    assert np.asarray(s.done).all() and np.all(info["step"] == 0)
-    assert np.all(info["start_distance"] <= gmin[info["scene"], info["goal"]] + 1e-5)
-    np.testing.assert_array_equal(info["complexity"], 0.0)
+    assert np.asarray(s.done).all() and np.all(info.step == 0)
+    assert np.all(info.start_distance <= gmin[info.scene, info.goal] + 1e-5)
+    np.testing.assert_array_equal(info.complexity, 0.0)
     s = env.set_complexity(s, jnp.float32(0.7))
-    np.testing.assert_allclose(np.asarray(s.info["complexity"]), 0.7)
+    np.testing.assert_allclose(np.asarray(s.info.complexity), 0.7)
 
 
 # --------------------------------------------------------------------- 6. goal kinds
@@ -502,7 +502,7 @@ def _check_targets(env, state):
             assert np.asarray(w.target_depth[s, g]).max() > 0
             assert np.asarray(w.target_seg[s, g]).max() > 0
     info = _np(state.info)
-    np.testing.assert_array_equal(np.asarray(state.obs["target_rgb"]), rgb[info["scene"], info["goal"]])
+    np.testing.assert_array_equal(np.asarray(state.obs.target_rgb), rgb[info.scene, info.goal])
 
 
 @pytest.mark.parametrize("goal", ["room", "object"])
@@ -554,8 +554,8 @@ def test_goal_kinds(goal):
     # Starts lie outside the goal regions.
     info = _np(s0.info)
     for b in range(8):
-        ii, jj = w.grids[info["scene"][b]].cell_of(info["pose"][b, :2])
-        assert not gs[info["scene"][b], info["goal"][b], ii, jj]
+        ii, jj = w.grids[info.scene[b]].cell_of(info.pose[b, :2])
+        assert not gs[info.scene[b], info.goal[b], ii, jj]
     _check_no_collisions(env, _all_poses(s0, rec), require_contact=False)
 
 
@@ -685,5 +685,5 @@ def test_user_mjcf_scene(tmp_path):
     # The table is seen from somewhere.
     target_seg = np.asarray(env.world.arrays.target_seg[0])
     assert target_seg.shape == (2, IMG, IMG)
-    seg = np.concatenate([np.asarray(s0.obs["segmentation"]), np.asarray(rec["segmentation"]).reshape(-1, IMG, IMG), target_seg])
+    seg = np.concatenate([np.asarray(s0.obs.segmentation), np.asarray(rec["segmentation"]).reshape(-1, IMG, IMG), target_seg])
     assert (seg == CLASS_ID["table"]).any()

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 
 from a2catvn_jax.agent.networks import Carry, Networks, Params, apply_flat
 from a2catvn_jax.agent.types import AgentState, Inputs, Transition
+from a2catvn_jax.env import Observation
 
 
 def initial_agent(networks: Networks, batch: int) -> AgentState:
@@ -19,10 +20,10 @@ def initial_agent(networks: Networks, batch: int) -> AgentState:
                       jnp.ones((batch,), bool))
 
 
-def step_inputs(obs: dict, agent: AgentState) -> Inputs:
+def step_inputs(obs: Observation, agent: AgentState) -> Inputs:
     """The network inputs [B] of the current step: the observation, the target's index,
     and what the agent carries."""
-    return Inputs(obs["rgb"], obs["target_index"], agent.prev_action, agent.prev_reward, agent.reset)
+    return Inputs(obs.rgb, obs.target_index, agent.prev_action, agent.prev_reward, agent.reset)
 
 
 def policy(networks: Networks, params: Params, target_feats, carry: Carry, inputs: Inputs):
@@ -35,7 +36,8 @@ def policy(networks: Networks, params: Params, target_feats, carry: Carry, input
     return carry, logits, value
 
 
-def act(networks: Networks, params: Params, target_feats, agent: AgentState, obs: dict, key, greedy: bool = False):
+def act(networks: Networks, params: Params, target_feats, agent: AgentState, obs: Observation, key,
+        greedy: bool = False):
     """(core state after this step, action [B] int32, logits, value) of the policy, sampled
     or (greedy) its argmax."""
     carry, logits, value = policy(networks, params, target_feats, agent.carry, step_inputs(obs, agent))
@@ -46,7 +48,7 @@ def act(networks: Networks, params: Params, target_feats, agent: AgentState, obs
 POLICIES = ("sample", "greedy", "random")
 
 
-def act_as(policy: str, networks: Networks, params: Params, target_feats, agent: AgentState, obs: dict, key):
+def act_as(policy: str, networks: Networks, params: Params, target_feats, agent: AgentState, obs: Observation, key):
     """(core state after this step, action [B] int32) of the policy sampled ("sample"), its
     argmax ("greedy"), or uniformly random actions ("random": the core still runs, so the
     agent state stays that of the network)."""
@@ -99,24 +101,25 @@ def episode_stats(env_state) -> dict:
 
 
 def rollout(env, networks: Networks, params: Params, target_feats, env_state, agent: AgentState, key, steps: int,
-            truth: Callable[[dict], object]):
+            truth: Callable[[Observation], object], world=None):
     """`steps` steps of the sampled policy in all environments, in one `lax.scan`.
 
-    Returns (transition [steps(+1), B], frame truth [steps+1, B] of `truth(obs)`, env
-    state, agent state, episode stats summed over the steps)."""
+    `world` is the environment's world arrays (default: its own). Returns (transition
+    [steps(+1), B], frame truth [steps+1, B] of `truth(obs)`, env state, agent state,
+    episode stats summed over the steps)."""
 
     def step(carry, k):
         env_state, agent = carry
         inputs = step_inputs(env_state.obs, agent)
         core, action, _, _ = act(networks, params, target_feats, agent, env_state.obs, k)
         record = (inputs, truth(env_state.obs))
-        env_state = env.step(env_state, action)
-        return (env_state, observe(core, action, env_state)), (record, (action, env_state.reward, env_state.done),
-                                                                episode_stats(env_state))
+        env_state = env.step(env_state, action, world)
+        step_record = (action, env_state.reward, env_state.terminated, env_state.truncated)
+        return (env_state, observe(core, action, env_state)), (record, step_record, episode_stats(env_state))
 
-    (env_state, agent_out), (recs, (action, reward, done), stats) = jax.lax.scan(
+    (env_state, agent_out), (recs, step_records, stats) = jax.lax.scan(
         step, (env_state, agent), jax.random.split(key, steps))
     last = (step_inputs(env_state.obs, agent_out), truth(env_state.obs))
     (inputs, frame_truth) = jax.tree_util.tree_map(lambda seq, x: jnp.concatenate([seq, x[None]]), recs, last)
     stats = {k: v.sum() for k, v in stats.items()}
-    return Transition.of(inputs, action, reward, done), frame_truth, env_state, agent_out, stats
+    return Transition.of(inputs, *step_records), frame_truth, env_state, agent_out, stats

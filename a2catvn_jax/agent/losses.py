@@ -19,15 +19,24 @@ import rlax
 GRAY = jnp.array([0.299, 0.587, 0.114], jnp.float32)
 
 
-def bootstrapped_returns(rewards, dones, bootstrap, gamma: float):
+def bootstrapped_returns(rewards, dones, bootstrap, gamma: float, truncated=None, values=None):
     """g_t = r_{t+1} + gamma r_{t+2} + ... + gamma^n 1_c v(s_{t+n}), n = steps to the end.
 
     rewards, dones [T, B]; bootstrap [B] (value of the state after the last step).
     The sum and the bootstrap stop at an episode end (done).
+
+    With `truncated` [T, B] (steps where an episode hit its time limit, a subset of
+    `dones`) and `values` [T, B] (the critic's v(s_t), held constant by the caller), a
+    time-out is not terminal: the return of the step it happened at is the critic's
+    value of the state it was taken from, g_t = v(s_t), so that the steps before it
+    bootstrap from that value (g_{t-1} = r_t + gamma v(s_t)) and the step itself, whose
+    next state the auto-reset replaced, gives no learning signal (g_t - v(s_t) = 0).
     """
     discounts = gamma * (1.0 - dones.astype(jnp.float32))
-    values = jnp.broadcast_to(bootstrap, rewards.shape)
-    return jax.vmap(rlax.discounted_returns, in_axes=1, out_axes=1)(rewards, discounts, values)
+    if truncated is not None:
+        rewards = jnp.where(truncated, values, rewards)
+    ends = jnp.broadcast_to(bootstrap, rewards.shape)
+    return jax.vmap(rlax.discounted_returns, in_axes=1, out_axes=1)(rewards, discounts, ends)
 
 
 def actor_critic_losses(logits, values, actions, returns):
@@ -45,14 +54,16 @@ def actor_critic_losses(logits, values, actions, returns):
     return actor, critic, neg_entropy
 
 
-def off_policy_critic_loss(values, rewards, dones, gamma: float):
+def off_policy_critic_loss(values, rewards, dones, gamma: float, truncated=None):
     """Critic loss on a replayed sequence, mean over [T, N] of 1/2 (g_t - v(s_t))^2.
 
     values [T+1, N] of the current critic on the sequence's T+1 states; rewards,
     dones [T, N]. g_t are `bootstrapped_returns` from the (constant) value of the last
-    state, cut at episode ends.
+    state, cut at episode ends; with `truncated` [T, N], time-outs bootstrap from the
+    critic instead (see `bootstrapped_returns`).
     """
-    returns = bootstrapped_returns(rewards, dones, jax.lax.stop_gradient(values[-1]), gamma)
+    held = jax.lax.stop_gradient(values)
+    returns = bootstrapped_returns(rewards, dones, held[-1], gamma, truncated, None if truncated is None else held[:-1])
     return jnp.mean(0.5 * jnp.square(returns - values[:-1]))
 
 

@@ -34,7 +34,8 @@ class Transition:
 
     The network inputs of T+1 steps, [T+1, B] (fields as in `Inputs`; the last step is
     the state the returns bootstrap from), and of each of the T steps taken: action
-    int32 [T, B], reward float32 [T, B], done bool [T, B] (the step ended an episode).
+    int32 [T, B], reward float32 [T, B], terminated bool [T, B] (the step reached the
+    goal: a terminal state), truncated bool [T, B] (the episode hit its time limit).
     """
 
     rgb: jnp.ndarray
@@ -44,15 +45,22 @@ class Transition:
     reset: jnp.ndarray
     action: jnp.ndarray
     reward: jnp.ndarray
-    done: jnp.ndarray
+    terminated: jnp.ndarray
+    truncated: jnp.ndarray
 
     @property
     def inputs(self) -> Inputs:
         return Inputs(self.rgb, self.target, self.prev_action, self.prev_reward, self.reset)
 
+    @property
+    def done(self):
+        """[T, B] bool: the step ended an episode."""
+        return self.terminated | self.truncated
+
     @classmethod
-    def of(cls, inputs: Inputs, action, reward, done) -> "Transition":
-        return cls(inputs.rgb, inputs.target, inputs.prev_action, inputs.prev_reward, inputs.reset, action, reward, done)
+    def of(cls, inputs: Inputs, action, reward, terminated, truncated) -> "Transition":
+        return cls(inputs.rgb, inputs.target, inputs.prev_action, inputs.prev_reward, inputs.reset, action, reward,
+                   terminated, truncated)
 
 
 @struct.dataclass

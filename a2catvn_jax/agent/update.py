@@ -93,6 +93,12 @@ def complexity(cfg: Config, frames):
     return jnp.float32(t0) + (t1 - t0) * frac
 
 
+def timeouts(cfg: Config, traj: Transition):
+    """The steps [T, N] whose time-out the returns bootstrap from the critic at, or None
+    when a time-out is terminal (`train.timeout_bootstrap=false`: the paper's returns)."""
+    return traj.truncated if cfg.train.timeout_bootstrap else None
+
+
 def segmentation_colors(cfg: Config):
     """The class colours [C, 3] in [0, 1] that segmentation targets are encoded with, or
     None for class-id targets (`agent.segmentation_loss=cross_entropy`)."""
@@ -101,12 +107,12 @@ def segmentation_colors(cfg: Config):
     return jnp.asarray(SEGMENTATION_COLORS, jnp.float32) / 255.0
 
 
-def frame_truth(cfg: Config, obs: dict) -> FrameTruth:
-    """Depth and segmentation ground truth of frames (obs["depth"], obs["segmentation"]
-    [N, H, W]) at auxiliary resolution, for the losses that are on."""
+def frame_truth(cfg: Config, depth, segmentation) -> FrameTruth:
+    """Depth and segmentation ground truth of frames (depth [N, H, W] metres,
+    segmentation [N, H, W] class ids) at auxiliary resolution, for the losses that are on."""
     heads, f = vn_heads_on(cfg), cfg.train.aux_downsize
-    depth = losses.depth_targets(obs["depth"], f) if "depth" in heads else None
-    seg = losses.segmentation_targets(obs["segmentation"], f, segmentation_colors(cfg)) if "segmentation" in heads else None
+    depth = losses.depth_targets(depth, f) if "depth" in heads else None
+    seg = losses.segmentation_targets(segmentation, f, segmentation_colors(cfg)) if "segmentation" in heads else None
     return FrameTruth(depth, seg)
 
 
@@ -140,7 +146,8 @@ def replay_terms(cfg: Config, networks: Networks, params: Params, target_feats, 
         _, out = unroll(networks, params, target_feats, seq.inputs, carry0)
         if w.off_policy_critic > 0:
             _, values = actor_critic_sequence(networks, params, out)
-            terms["off_policy_critic"] = losses.off_policy_critic_loss(values, seq.reward, seq.done, tc.gamma)
+            terms["off_policy_critic"] = losses.off_policy_critic_loss(values, seq.reward, seq.done, tc.gamma,
+                                                                       timeouts(cfg, seq))
         if w.pixel_control > 0:
             q = apply_flat(lambda x: networks.pixel_control(params, x), out)
             pc = jax.vmap(losses.pixel_control_loss, in_axes=(1, 1, 1, 1, None, None))(
@@ -165,7 +172,8 @@ def transition_example(cfg: Config, batch: int) -> Transition:
         rgb=zeros((L, batch, size, size, 3), jnp.uint8), target=zeros((L, batch), jnp.int32),
         prev_action=zeros((L, batch), jnp.int32), prev_reward=zeros((L, batch), jnp.float32),
         reset=zeros((L, batch), bool), action=zeros((L - 1, batch), jnp.int32),
-        reward=zeros((L - 1, batch), jnp.float32), done=zeros((L - 1, batch), bool),
+        reward=zeros((L - 1, batch), jnp.float32), terminated=zeros((L - 1, batch), bool),
+        truncated=zeros((L - 1, batch), bool),
     )
 
 
@@ -191,7 +199,8 @@ def loss(cfg: Config, networks: Networks, targets: Targets, params: Params, traj
     target_feats = networks.target_stream(params, targets.rgb)
     conv4, out = unroll(networks, params, target_feats, traj.inputs, carry0)
     logits, values = actor_critic_sequence(networks, params, out)
-    returns = losses.bootstrapped_returns(traj.reward, traj.done, jax.lax.stop_gradient(values[-1]), tc.gamma)
+    held = jax.lax.stop_gradient(values)
+    returns = losses.bootstrapped_returns(traj.reward, traj.done, held[-1], tc.gamma, timeouts(cfg, traj), held[:-1])
     actor, critic, neg_entropy = losses.actor_critic_losses(logits[:-1], values[:-1], traj.action, returns)
     terms = {"actor": actor, "critic": critic, "entropy": neg_entropy}
     terms.update(vn_terms(cfg, networks, params, conv4, truth, targets.segmentation[traj.target]))
@@ -217,7 +226,7 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
     schedule = learning_rate_schedule(cfg)
     replay_slots = max(1, tc.replay_size // T)
     targets = targets_of(cfg, env)
-    truth = lambda obs: frame_truth(cfg, obs)  # noqa: E731
+    truth = lambda obs: frame_truth(cfg, obs.depth, obs.segmentation)  # noqa: E731
 
     def init(key, params: Optional[Params] = None) -> TrainState:
         k_param, k_env, k_train = jax.random.split(key, 3)

@@ -44,7 +44,7 @@ def bench_env(batch: int, resolution: int, steps: int, overrides=(), world=None)
     for k in range(steps):
         state = step(state, actions[k + 1])
         if k < 4:
-            poses.append(np.asarray(state.info["pose"]))
+            poses.append(np.asarray(state.info.pose))
     jax.block_until_ready(state)
     dt = time.perf_counter() - t0
     fallbacks = int(np.asarray(state.metrics["fallback"]).sum())

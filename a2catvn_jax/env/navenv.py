@@ -2,9 +2,15 @@
 
 `NavEnv.reset(key) -> State` and `NavEnv.step(state, action) -> State` act on B agents
 spread over the world's S scenes (agent b lives in scene b mod S) and are jit- and
-vmap-able. An episode ends on success (reward 1) or after `max_episode_steps`; the
-agent is then reset in the same step (auto-reset): `obs` shows the new episode's
-first frame while `reward`, `done` and `metrics` describe the step that ended.
+vmap-able. An episode ends on success (`terminated`, reward 1) or after
+`max_episode_steps` (`truncated`: a time-out, not a terminal state); the agent is
+then reset in the same step (auto-reset): `obs` shows the new episode's first frame
+while `reward`, `terminated`, `truncated` and `metrics` describe the step that ended.
+
+The world (`WorldArrays`: geometry, occupancy grids, goals, target images) is data:
+`reset` and `step` read it from their `world` argument (the environment's own world
+when omitted), so one compiled step serves every world of the same shapes: training,
+held-out and new-target houses built with `World(..., like=...)`.
 
 Actions (paper): forward 0.5 m, backward 0.2 m, left/right 0.35 m sideways, rotate
 +-30 deg, tilt camera +-30 deg ("full"); the same without tilt ("no_tilt"); or
@@ -13,7 +19,7 @@ of the continuous sets the position gets N(0, 0.02^2) noise per axis and the hea
 N(0, (2 deg)^2). Moves are swept against obstacle footprints grown by the agent's
 radius and stop just before contact, so the agent never ends inside a geom.
 
-The curriculum complexity tau is data (`State.info["complexity"]`): a new start is
+The curriculum complexity tau is data (`State.info.complexity`): a new start is
 drawn uniformly among free cells whose geodesic distance to the goal is at most
 tau * (the scene's largest geodesic distance).
 """
@@ -28,8 +34,8 @@ import numpy as np
 from flax import struct
 
 from a2catvn_jax.config import EnvConfig
-from a2catvn_jax.env import camera, render
-from a2catvn_jax.env.world import SEGMENTATION_COLORS, World, cam_position, make_scenes
+from a2catvn_jax.env import camera, rects, render
+from a2catvn_jax.env.world import SEGMENTATION_COLORS, World, WorldArrays, cam_position, make_scenes, render_poses
 
 # (forward, left, rotate, tilt) per action; metres and degrees.
 ACTION_SETS = {
@@ -56,26 +62,71 @@ MIN_IMAGE_SIZE = 16
 
 
 @struct.dataclass
+class Observation:
+    """What the agents see, [B, ...] (h = w = env.render.image_size).
+
+    rgb [B, h, w, 3] uint8; depth [B, h, w] float32 metres along each pixel's ray (0
+    where nothing is hit); segmentation [B, h, w] uint8 class ids; segmentation_rgb
+    [B, h, w, 3] uint8 class colours (the paper's encoding). The same four of the
+    target image, prefixed target_. target_index [B] int32: the target image's index
+    in `NavEnv.target_images()`.
+    """
+
+    rgb: jnp.ndarray
+    depth: jnp.ndarray
+    segmentation: jnp.ndarray
+    segmentation_rgb: jnp.ndarray
+    target_rgb: jnp.ndarray
+    target_depth: jnp.ndarray
+    target_segmentation: jnp.ndarray
+    target_segmentation_rgb: jnp.ndarray
+    target_index: jnp.ndarray
+
+
+@struct.dataclass
+class Info:
+    """Each agent's episode, [B, ...].
+
+    scene, goal [B] int32; pose [B, 4] (x, y, yaw, tilt); target_pose [B, 4] where the
+    target image was taken; start_distance [B] geodesic start-to-goal distance (m);
+    step [B] int32 steps taken; path_length [B] metres travelled; episode_return [B];
+    complexity [B] curriculum tau of the next episodes; key [B, 2] PRNG keys.
+    """
+
+    scene: jnp.ndarray
+    goal: jnp.ndarray
+    pose: jnp.ndarray
+    target_pose: jnp.ndarray
+    start_distance: jnp.ndarray
+    step: jnp.ndarray
+    path_length: jnp.ndarray
+    episode_return: jnp.ndarray
+    complexity: jnp.ndarray
+    key: jnp.ndarray
+
+
+@struct.dataclass
 class State:
     """Batched environment state (leading axis B everywhere).
 
-    obs: rgb [B,h,w,3] uint8, depth [B,h,w] float32 (metres along the ray),
-      segmentation [B,h,w] uint8 class ids, segmentation_rgb [B,h,w,3] (class colours),
-      and the same four for the target image, prefixed "target_"; target_index [B]
-      int32, the target image's index in `NavEnv.target_images()`.
-    info: scene, goal [B] int32; pose [B, 4] (x, y, yaw, tilt); target_pose [B, 4];
-      start_distance [B] geodesic start-to-goal distance; step [B]; path_length [B];
-      episode_return [B]; complexity [B]; key [B] PRNG keys.
+    obs: `Observation`; reward [B] float32; terminated [B] bool (the step reached the
+    goal); truncated [B] bool (the episode hit the time limit); info: `Info`.
     metrics (of the step just taken; episode_* are meaningful where `done`):
       success, truncated, episode_length, episode_return, episode_spl,
       episode_start_distance, fallback (renderer fell back to brute force).
     """
 
-    obs: dict
+    obs: Observation
     reward: jnp.ndarray
-    done: jnp.ndarray
+    terminated: jnp.ndarray
+    truncated: jnp.ndarray
     metrics: dict
-    info: dict
+    info: Info
+
+    @property
+    def done(self):
+        """[B] bool: the step ended an episode (terminated or truncated)."""
+        return self.terminated | self.truncated
 
 
 class NavEnv:
@@ -92,7 +143,7 @@ class NavEnv:
         self.cfg = cfg
         self.world = world if world is not None else World(cfg, make_scenes(cfg, seed_offset), seed=cfg.scene.seed + seed_offset)
         self.num_envs = cfg.num_envs
-        self.action_names = tuple(name for name, _ in ACTION_SETS[cfg.action_set])
+        self.action_names = action_names(cfg)
         self.num_actions = len(self.action_names)
         moves = np.array([m for _, m in ACTION_SETS[cfg.action_set]], np.float32)
         moves[:, 2:] = np.deg2rad(moves[:, 2:])
@@ -107,46 +158,66 @@ class NavEnv:
     def num_scenes(self) -> int:
         return len(self.world.scenes)
 
-    def reset(self, key, complexity: Optional[float] = None) -> State:
-        """Fresh episodes for all B agents."""
+    @property
+    def num_targets(self) -> int:
+        """K: the distinct target images of the world (goals of every scene)."""
+        return int(np.prod(self.world.arrays.target_rgb.shape[:2]))
+
+    def reset(self, key, complexity: Optional[float] = None, world: Optional[WorldArrays] = None) -> State:
+        """Fresh episodes for all B agents in `world` (default: the environment's own)."""
+        w = self._world(world)
         B = self.num_envs
         if jnp.issubdtype(jnp.asarray(key).dtype, jax.dtypes.prng_key):
             key = jax.random.key_data(key)
         tau = jnp.full((B,), self.cfg.complexity if complexity is None else complexity, jnp.float32)
         keys = jax.random.split(key, B)
-        scene = jnp.arange(B, dtype=jnp.int32) % self.num_scenes
-        keys, start = jax.vmap(self._sample_episode)(keys, scene, tau)
-        info = self._episode_info(start, scene, tau, keys)
-        frame = self._render(scene, info["pose"])
+        scene = jnp.arange(B, dtype=jnp.int32) % w.free.shape[0]
+        keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, scene, tau)
+        info = self._episode_info(w, start, scene, tau, keys)
+        frame = self._render(w, scene, info.pose)
         zeros = jnp.zeros((B,), jnp.float32)
         metrics = self._metrics(zeros > 1, zeros > 1, info, zeros, frame.fallback)
-        return State(self._obs(frame, info), zeros, zeros > 1, metrics, info)
+        return State(self._obs(w, frame, info), zeros, zeros > 1, zeros > 1, metrics, info)
 
-    def step(self, state: State, action) -> State:
-        """Apply actions [B] (int) and auto-reset finished episodes."""
+    def step(self, state: State, action, world: Optional[WorldArrays] = None) -> State:
+        """Apply actions [B] (int) in `world` (default: the environment's own) and auto-reset
+        finished episodes."""
+        w = self._world(world)
         info = state.info
-        keys, noise_key = jax.vmap(jax.random.split, out_axes=1)(info["key"])
-        pose, moved = jax.vmap(self._move)(info["scene"], info["pose"], jnp.asarray(action, jnp.int32), noise_key)
-        success = jax.vmap(self._at_goal)(info["scene"], info["goal"], pose)
-        step = info["step"] + 1
+        keys, noise_key = jax.vmap(jax.random.split, out_axes=1)(info.key)
+        pose, moved = jax.vmap(self._move, in_axes=(None, 0, 0, 0, 0))(
+            w, info.scene, info.pose, jnp.asarray(action, jnp.int32), noise_key)
+        success = jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose)
+        step = info.step + 1
         truncated = (step >= self.cfg.max_episode_steps) & ~success
         done = success | truncated
         reward = success.astype(jnp.float32)
-        path = info["path_length"] + moved
-        ended = dict(info, pose=pose, step=step, path_length=path, episode_return=info["episode_return"] + reward)
+        ended = info.replace(pose=pose, step=step, path_length=info.path_length + moved,
+                             episode_return=info.episode_return + reward)
 
-        keys, start = jax.vmap(self._sample_episode)(keys, info["scene"], info["complexity"])
-        fresh = self._episode_info(start, info["scene"], info["complexity"], keys)
-        ended["key"] = keys
+        keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, info.scene, info.complexity)
+        fresh = self._episode_info(w, start, info.scene, info.complexity, keys)
+        ended = ended.replace(key=keys)
         new_info = jax.tree_util.tree_map(lambda a, b: _where(done, a, b), fresh, ended)
-        frame = self._render(new_info["scene"], new_info["pose"])
+        frame = self._render(w, new_info.scene, new_info.pose)
         metrics = self._metrics(success, truncated, ended, reward, frame.fallback)
-        return State(self._obs(frame, new_info), reward, done, metrics, new_info)
+        return State(self._obs(w, frame, new_info), reward, success, truncated, metrics, new_info)
 
     def set_complexity(self, state: State, complexity) -> State:
         """The same state with curriculum complexity tau for the episodes that follow."""
-        tau = jnp.broadcast_to(jnp.asarray(complexity, jnp.float32), state.info["complexity"].shape)
-        return state.replace(info=dict(state.info, complexity=tau))
+        tau = jnp.broadcast_to(jnp.asarray(complexity, jnp.float32), state.info.complexity.shape)
+        return state.replace(info=state.info.replace(complexity=tau))
+
+    def target_index(self, scene, goal):
+        """Index in `target_images()` of goal `goal` of scene `scene` (int arrays of one shape)."""
+        return (scene * self.cfg.goals_per_scene + goal).astype(jnp.int32)
+
+    def target_images(self, world: Optional[WorldArrays] = None) -> dict:
+        """The K distinct target images, indexed by `obs.target_index`: rgb [K, h, w, 3]
+        uint8, depth [K, h, w] metres, segmentation [K, h, w] uint8 class ids."""
+        w = self._world(world)
+        flat = lambda a: a.reshape((-1,) + a.shape[2:])  # noqa: E731
+        return {"rgb": flat(w.target_rgb), "depth": flat(w.target_depth), "segmentation": flat(w.target_seg)}
 
     # Debugging API: hold the renderer against MuJoCo for any pose.
     def scene_mjcf(self, scene_index: int) -> str:
@@ -164,31 +235,17 @@ class NavEnv:
         frame = self.render_poses(jnp.array([scene_index]), jnp.asarray(pose)[None])
         return jax.tree_util.tree_map(lambda a: a[0], frame)
 
-    def render_poses(self, scenes, poses) -> render.Frame:
+    def render_poses(self, scenes, poses, world: Optional[WorldArrays] = None) -> render.Frame:
         """Frames [N] seen from poses [N, 4] in scenes [N]."""
-        return self._render(jnp.asarray(scenes, jnp.int32), jnp.asarray(poses, jnp.float32))
+        return self._render(self._world(world), jnp.asarray(scenes, jnp.int32), jnp.asarray(poses, jnp.float32))
 
-    def sample_starts(self, keys, scenes, complexity):
+    def sample_starts(self, keys, scenes, complexity, world: Optional[WorldArrays] = None):
         """(goal [N], pose [N, 4], start distance [N]) of new episodes in scenes [N], one per key,
         drawn as `reset` draws them at curriculum complexity [N]."""
-        _, start = jax.vmap(self._sample_episode)(keys, jnp.asarray(scenes, jnp.int32), complexity)
+        w = self._world(world)
+        _, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, jnp.asarray(scenes, jnp.int32),
+                                                                          complexity)
         return start
-
-    @property
-    def num_targets(self) -> int:
-        """K: the distinct target images of the world (goals of every scene)."""
-        return int(np.prod(self.world.arrays.target_rgb.shape[:2]))
-
-    def target_index(self, scene, goal):
-        """Index in `target_images()` of goal `goal` of scene `scene` (int arrays of one shape)."""
-        return (scene * self.world.arrays.target_rgb.shape[1] + goal).astype(jnp.int32)
-
-    def target_images(self) -> dict:
-        """The K distinct target images, indexed by `obs["target_index"]`: rgb [K, h, w, 3]
-        uint8, depth [K, h, w] metres, segmentation [K, h, w] uint8 class ids."""
-        w = self.world.arrays
-        flat = lambda a: a.reshape((-1,) + a.shape[2:])  # noqa: E731
-        return {"rgb": flat(w.target_rgb), "depth": flat(w.target_depth), "segmentation": flat(w.target_seg)}
 
     def segmentation_rgb(self, classes):
         """The paper's encoding of class ids as colours evenly spread in hue: [..., 3] uint8."""
@@ -196,48 +253,41 @@ class NavEnv:
 
     # -- internals ----------------------------------------------------------------------
 
-    def _render(self, scene, pose) -> render.Frame:
-        return render.render_batch(
-            self.world.arrays.geometry, scene, cam_position(pose, self.cfg.camera_height), pose[:, 2], pose[:, 3], self._spec
-        )
+    def _world(self, world: Optional[WorldArrays]) -> WorldArrays:
+        return self.world.arrays if world is None else world
 
-    def _obs(self, frame: render.Frame, info) -> dict:
-        w = self.world.arrays
-        s, g = info["scene"], info["goal"]
+    def _render(self, w: WorldArrays, scene, pose) -> render.Frame:
+        return render_poses(w.geometry, self._spec, self.cfg.camera_height, scene, pose)
+
+    def _obs(self, w: WorldArrays, frame: render.Frame, info: Info) -> Observation:
+        s, g = info.scene, info.goal
         seg = frame.cls.astype(jnp.uint8)
         tseg = w.target_seg[s, g]
-        return {
-            "rgb": frame.rgb,
-            "depth": frame.depth,
-            "segmentation": seg,
-            "segmentation_rgb": self._colors[seg],
-            "target_rgb": w.target_rgb[s, g],
-            "target_depth": w.target_depth[s, g],
-            "target_segmentation": tseg,
-            "target_segmentation_rgb": self._colors[tseg],
-            "target_index": self.target_index(s, g),
-        }
+        return Observation(
+            rgb=frame.rgb,
+            depth=frame.depth,
+            segmentation=seg,
+            segmentation_rgb=self._colors[seg],
+            target_rgb=w.target_rgb[s, g],
+            target_depth=w.target_depth[s, g],
+            target_segmentation=tseg,
+            target_segmentation_rgb=self._colors[tseg],
+            target_index=self.target_index(s, g),
+        )
 
-    def _cell(self, scene, xy):
-        w = self.world.arrays
-        ij = jnp.floor((xy - w.grid_origin[scene]) / self.cfg.grid_resolution).astype(jnp.int32)
-        H, W = w.free.shape[1:]
-        return jnp.clip(ij[1], 0, H - 1), jnp.clip(ij[0], 0, W - 1)
+    def _at_goal(self, w: WorldArrays, scene, goal, pose):
+        i, j = rects.cell_of(pose[:2], w.grid_origin[scene], self.cfg.grid_resolution, w.free.shape[1:])
+        return w.goal_success[scene, goal, i, j]
 
-    def _at_goal(self, scene, goal, pose):
-        i, j = self._cell(scene, pose[:2])
-        return self.world.arrays.goal_success[scene, goal, i, j]
-
-    def _sample_episode(self, key, scene, tau):
+    def _sample_episode(self, w: WorldArrays, key, scene, tau):
         """(next key, (goal, pose, start distance)) of a new episode in `scene`."""
-        w = self.world.arrays
         key, kg, kc, kj, ky = jax.random.split(key, 5)
         goal = jax.random.randint(kg, (), 0, w.goal_dist.shape[1])
         dist = w.goal_dist[scene, goal]
         limit = jnp.maximum(tau * w.diameter[scene], w.goal_min_dist[scene, goal])
         ok = w.free[scene] & ~w.goal_success[scene, goal] & (dist <= limit)
         H, W = dist.shape
-        cell = jax.random.categorical(kc, jnp.where(ok, 0.0, -jnp.inf).reshape(-1))
+        cell = _uniform_index(kc, ok.reshape(-1))
         i, j = cell // W, cell % W
         res = self.cfg.grid_resolution
         centre = w.grid_origin[scene] + (jnp.stack([j, i]).astype(jnp.float32) + 0.5) * res
@@ -247,45 +297,35 @@ class NavEnv:
         else:
             yaw = jax.random.uniform(ky, (), minval=-jnp.pi, maxval=jnp.pi)
             jitter = centre + jax.random.uniform(kj, (2,), minval=-0.5, maxval=0.5) * res
-            xy = jnp.where(self._blocked(scene, jitter), centre, jitter)
+            blocked = rects.inside(jitter, w.obstacles[scene], self.cfg.agent_radius + _CONTACT_GAP).any()
+            xy = jnp.where(blocked, centre, jitter)
         pose = jnp.concatenate([xy, jnp.stack([yaw, 0.0])])
         return key, (goal, pose, dist[i, j])
 
-    def _episode_info(self, start, scene, tau, keys) -> dict:
+    def _episode_info(self, w: WorldArrays, start, scene, tau, keys) -> Info:
         goal, pose, dist = start
-        w = self.world.arrays
         zeros = jnp.zeros_like(tau)
-        return {
-            "scene": scene,
-            "goal": goal.astype(jnp.int32),
-            "pose": pose,
-            "target_pose": w.target_pose[scene, goal],
-            "start_distance": dist,
-            "step": jnp.zeros_like(scene),
-            "path_length": zeros,
-            "episode_return": zeros,
-            "complexity": tau,
-            "key": keys,
-        }
+        return Info(
+            scene=scene,
+            goal=goal.astype(jnp.int32),
+            pose=pose,
+            target_pose=w.target_pose[scene, goal],
+            start_distance=dist,
+            step=jnp.zeros_like(scene),
+            path_length=zeros,
+            episode_return=zeros,
+            complexity=tau,
+            key=keys,
+        )
 
-    def _blocked(self, scene, xy):
-        r = self.cfg.agent_radius + _CONTACT_GAP
-        ob = self.world.arrays.obstacles[scene]
-        inside = (xy[0] >= ob[:, 0] - r) & (xy[0] <= ob[:, 2] + r) & (xy[1] >= ob[:, 1] - r) & (xy[1] <= ob[:, 3] + r)
-        return jnp.any(inside)
-
-    def _sweep(self, scene, p0, p1):
+    def _sweep(self, w: WorldArrays, scene, p0, p1):
         """Fraction in [0, 1] of the segment p0 -> p1 the agent can travel before its
         grown footprint would touch an obstacle."""
         r = self.cfg.agent_radius
-        ob = self.world.arrays.obstacles[scene]
-        lo = ob[:, :2] - r
-        hi = ob[:, 2:] + r
+        ob = w.obstacles[scene]
+        grown = jnp.concatenate([ob[:, :2] - r, ob[:, 2:] + r], -1)
         d = p1 - p0
-        inv = render._safe_inv(d)
-        t1, t2 = (lo - p0) * inv, (hi - p0) * inv
-        tn = jnp.max(jnp.minimum(t1, t2), -1)
-        tf = jnp.min(jnp.maximum(t1, t2), -1)
+        tn, tf = rects.slab(p0, d, grown)
         hits = (tn <= tf) & (tf >= 0) & (tn <= 1.0)
         first = jnp.min(jnp.where(hits, tn, 1.0))
         length = jnp.linalg.norm(d)
@@ -294,7 +334,7 @@ class NavEnv:
         stop = jnp.clip(first - _CONTACT_GAP / jnp.maximum(length, 1e-9), 0.0, 1.0)
         return jnp.where(jnp.any(hits), stop, 1.0)
 
-    def _move(self, scene, pose, action, key):
+    def _move(self, w: WorldArrays, scene, pose, action, key):
         """New pose after `action` and the distance actually travelled."""
         fwd, left, rot, tilt = (jnp.asarray(self._moves)[action, i] for i in range(4))
         x, y, yaw, cam_tilt = pose[0], pose[1], pose[2], pose[3]
@@ -305,7 +345,7 @@ class NavEnv:
             kp, kh = jax.random.split(key)
             step = step + self.cfg.position_noise * jax.random.normal(kp, (2,))
             yaw = yaw + jnp.deg2rad(self.cfg.heading_noise_deg) * jax.random.normal(kh)
-        frac = self._sweep(scene, p0, p0 + step)
+        frac = self._sweep(w, scene, p0, p0 + step)
         if self._grid:
             frac = jnp.where(frac < 1.0, 0.0, 1.0)  # grid moves happen whole or not at all
         p1 = p0 + frac * step
@@ -314,18 +354,32 @@ class NavEnv:
         cam_tilt = jnp.clip(cam_tilt + tilt, -max_tilt, max_tilt)
         return jnp.concatenate([p1, jnp.stack([yaw, cam_tilt])]), frac * jnp.linalg.norm(step)
 
-    def _metrics(self, success, truncated, ended, reward, fallback) -> dict:
-        d0 = ended["start_distance"]
-        spl = success * d0 / jnp.maximum(jnp.maximum(ended["path_length"], d0), 1e-6)
+    def _metrics(self, success, truncated, ended: Info, reward, fallback) -> dict:
+        d0 = ended.start_distance
+        spl = success * d0 / jnp.maximum(jnp.maximum(ended.path_length, d0), 1e-6)
         return {
             "success": success,
             "truncated": truncated,
-            "episode_length": ended["step"],
-            "episode_return": ended["episode_return"],
+            "episode_length": ended.step,
+            "episode_return": ended.episode_return,
             "episode_spl": spl,
             "episode_start_distance": d0,
             "fallback": fallback,
         }
+
+
+def action_names(cfg: EnvConfig) -> tuple[str, ...]:
+    """The names of the actions of the configured action set, in action-index order."""
+    return tuple(name for name, _ in ACTION_SETS[cfg.action_set])
+
+
+def _uniform_index(key, mask):
+    """An index drawn uniformly among the True entries of `mask` [N]: the k-th of them in
+    order, k uniform. Padding `mask` with False entries anywhere after or between the
+    True ones does not change which of them is drawn."""
+    count = mask.sum()
+    k = jnp.minimum(jnp.floor(jax.random.uniform(key) * count), count - 1)
+    return jnp.argmax(jnp.cumsum(mask) > k)
 
 
 def _where(mask, a, b):

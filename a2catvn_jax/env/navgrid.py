@@ -18,6 +18,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
+from a2catvn_jax.env import rects
 from a2catvn_jax.env.scenes.errors import SceneError
 from a2catvn_jax.env.scenes.mjcf import geom_aabb
 from a2catvn_jax.env.scenes.spec import Scene
@@ -27,24 +28,12 @@ FLOOR_CLEARANCE = 0.02  # geoms entirely below this height (rugs) do not block
 
 def obstacle_rects(scene: Scene, body_height: float) -> np.ndarray:
     """Footprints (xmin, ymin, xmax, ymax) [N, 4] of geoms that block the agent."""
-    rects = []
+    footprints = []
     for g in scene.geoms:
         lo, hi = geom_aabb(g)
         if hi[2] > FLOOR_CLEARANCE and lo[2] < body_height and g.cls not in ("floor", "ceiling"):
-            rects.append([lo[0], lo[1], hi[0], hi[1]])
-    return np.asarray(rects, np.float64).reshape(-1, 4)
-
-
-def inside_any(points: np.ndarray, rects: np.ndarray, grow: float) -> np.ndarray:
-    """Whether each point [..., 2] lies inside (or on) any rect grown by `grow`."""
-    p = points[..., None, :]
-    inside = (
-        (p[..., 0] >= rects[:, 0] - grow)
-        & (p[..., 0] <= rects[:, 2] + grow)
-        & (p[..., 1] >= rects[:, 1] - grow)
-        & (p[..., 1] <= rects[:, 3] + grow)
-    )
-    return inside.any(-1)
+            footprints.append([lo[0], lo[1], hi[0], hi[1]])
+    return np.asarray(footprints, np.float64).reshape(-1, 4)
 
 
 @dataclasses.dataclass
@@ -67,9 +56,8 @@ class NavGrid:
         return self.origin + (np.stack([jj, ii], -1) + 0.5) * self.resolution
 
     def cell_of(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ij = np.floor((np.asarray(xy) - self.origin) / self.resolution).astype(int)
-        h, w = self.shape
-        return np.clip(ij[..., 1], 0, h - 1), np.clip(ij[..., 0], 0, w - 1)
+        """Row and column of the cells holding points xy [..., 2] (clipped to the grid)."""
+        return rects.cell_of(np.asarray(xy), self.origin, self.resolution, self.shape)
 
 
 def build(scene: Scene, resolution: float, agent_radius: float, body_height: float) -> NavGrid:
@@ -78,12 +66,12 @@ def build(scene: Scene, resolution: float, agent_radius: float, body_height: flo
     w = max(int(np.ceil((x1 - x0) / resolution)), 1)
     h = max(int(np.ceil((y1 - y0) / resolution)), 1)
     origin = np.array([x0, y0], np.float64)
-    rects = obstacle_rects(scene, body_height)
-    grid = NavGrid(origin, resolution, np.zeros((h, w), bool), np.full((h, w), -1, np.int32), rects)
+    obstacles = obstacle_rects(scene, body_height)
+    grid = NavGrid(origin, resolution, np.zeros((h, w), bool), np.full((h, w), -1, np.int32), obstacles)
     c = grid.centres()
     within = (c[..., 0] > x0 + agent_radius) & (c[..., 0] < x1 - agent_radius)
     within &= (c[..., 1] > y0 + agent_radius) & (c[..., 1] < y1 - agent_radius)
-    grid.free = within & ~inside_any(c, rects, agent_radius + 1e-3)
+    grid.free = within & ~rects.inside(c, obstacles, agent_radius + 1e-3).any(-1)
     for k, room in enumerate(scene.rooms):
         rx0, ry0, rx1, ry1 = room.rect
         grid.room[(c[..., 0] >= rx0) & (c[..., 0] < rx1) & (c[..., 1] >= ry0) & (c[..., 1] < ry1)] = k

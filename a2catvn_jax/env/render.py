@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from a2catvn_jax.env import camera
+from a2catvn_jax.env import camera, rects
 from a2catvn_jax.env.geometry import (
     FAMILIES,
     PATTERN_CHECKER,
@@ -111,10 +111,6 @@ class Frame(NamedTuple):
 # scalars), `r` the rays: directions (dx, dy, dz) and their inverses (ix, iy, iz).
 
 
-def _safe_inv(v):
-    return 1.0 / jnp.where(jnp.abs(v) < 1e-12, jnp.where(v < 0, -1e-12, 1e-12), v)
-
-
 def _slab(x1, x2, y1, y2, z1, z2):
     tn = jnp.maximum(jnp.maximum(jnp.minimum(x1, x2), jnp.minimum(y1, y2)), jnp.minimum(z1, z2))
     tf = jnp.minimum(jnp.minimum(jnp.maximum(x1, x2), jnp.maximum(y1, y2)), jnp.maximum(z1, z2))
@@ -147,7 +143,7 @@ def _hit_abox(p, r):
 
 def _hit_obox(p, r):
     v = _local(p, r)
-    inv = [_safe_inv(c) for c in v]
+    inv = [rects.safe_inv(c) for c in v]
     t = []
     for i, c in enumerate("xyz"):
         t += [(-p[f"s{c}"] - p[f"l{c}"]) * inv[i], (p[f"s{c}"] - p[f"l{c}"]) * inv[i]]
@@ -246,22 +242,10 @@ def _in_wedge(fp, c, right, left):
     return ok_r & ok_l
 
 
-def _footprint_distance(fp, c):
-    """Horizontal distance from point c to each footprint rectangle, [N]."""
-    dx = jnp.maximum(jnp.maximum(fp[..., 0] - c[0], c[0] - fp[..., 2]), 0.0)
-    dy = jnp.maximum(jnp.maximum(fp[..., 1] - c[1], c[1] - fp[..., 3]), 0.0)
-    return jnp.sqrt(dx * dx + dy * dy)
-
-
 def _entry_2d(fp, c, u):
     """Entry distance of the 2D rays c + s u [T, 2] into rectangles fp [N, 4]: [T, N],
     INF where missed or where c is inside."""
-    lo = fp[None, :, :2] - c
-    hi = fp[None, :, 2:] - c
-    inv = _safe_inv(u)[:, None, :]
-    t1, t2 = lo * inv, hi * inv
-    tn = jnp.max(jnp.minimum(t1, t2), -1)
-    tf = jnp.min(jnp.maximum(t1, t2), -1)
+    tn, tf = rects.slab(c, u, fp)
     return jnp.where((tn <= tf) & (tn >= 0), tn, INF)
 
 
@@ -300,7 +284,7 @@ def _tile_candidates(geom: Geometry, cam_pos, dirs, spec: CameraSpec):
         n = fam.count
         if n == 0:
             continue
-        dist = _footprint_distance(fam.fp, c)
+        dist = rects.distance(c, fam.fp)
         mask = _in_wedge(fam.fp, c, right, left) & (dist[None, :] <= far[:, None] + _DIST_EPS) & fam.valid[None, :]
         k = spec.cap(f)
         if n <= k:
@@ -352,7 +336,7 @@ def _trace(geom: Geometry, cam_pos, dirs, cands=None):
 
     Returns (t, geom id), each [T, R]; t is INF and the id -1 where nothing is hit."""
     dx, dy, dz = dirs[..., 0], dirs[..., 1], dirs[..., 2]
-    rays = (dx, dy, dz, _safe_inv(dx), _safe_inv(dy), _safe_inv(dz))
+    rays = (dx, dy, dz, rects.safe_inv(dx), rects.safe_inv(dy), rects.safe_inv(dz))
     carry = (jnp.full(dx.shape, INF, jnp.float32), jnp.full(dx.shape, -1, jnp.int32))
     for f in FAMILIES:
         fam = geom.families[f]

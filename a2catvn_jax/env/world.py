@@ -18,7 +18,7 @@ from flax import struct
 
 from a2catvn_jax.config import EnvConfig
 from a2catvn_jax.env import geometry as geometry_lib
-from a2catvn_jax.env import navgrid, render
+from a2catvn_jax.env import navgrid, rects, render
 from a2catvn_jax.env.scenes import generate, mjcf
 from a2catvn_jax.env.scenes.errors import SceneError
 from a2catvn_jax.env.scenes.mjcf import geom_aabb
@@ -55,6 +55,30 @@ class WorldArrays:
     target_rgb: jnp.ndarray
     target_depth: jnp.ndarray
     target_seg: jnp.ndarray
+
+    def fits(self, other: "WorldArrays") -> bool:
+        """Whether every array has the rank of `other`'s and no axis longer than it."""
+        mine, theirs = jax.tree_util.tree_structure(self), jax.tree_util.tree_structure(other)
+        return mine == theirs and all(
+            a.ndim == b.ndim and all(m <= n for m, n in zip(a.shape, b.shape))
+            for a, b in zip(jax.tree_util.tree_leaves(self), jax.tree_util.tree_leaves(other)))
+
+    def padded_like(self, other: "WorldArrays") -> "WorldArrays":
+        """These arrays padded to the shapes of `other`'s (which they must `fit`) with
+        entries that change nothing: invalid geoms, far-away obstacles, blocked cells
+        unreachable from every goal."""
+
+        def pad(path, a, b):
+            name = jax.tree_util.keystr(path[-1:]).strip(".[]'")
+            fill = _PAD_FILL.get(name, 0)
+            return jnp.pad(a, [(0, n - m) for m, n in zip(a.shape, b.shape)], constant_values=fill)
+
+        return jax.tree_util.tree_map_with_path(pad, self, other)
+
+
+# Fill values of padded entries (by field name; the rest are 0 / False): geoms with id -1
+# are never hit, obstacles lie far away, padded cells are unreachable.
+_PAD_FILL = {"gid": -1, "obstacles": 1e6, "goal_dist": np.inf}
 
 
 @dataclasses.dataclass
@@ -155,9 +179,7 @@ class World:
         for _ in range(50):
             obj = objs[rng.integers(len(objs))]
             lo, hi = geom_aabb(obj)
-            dx = np.maximum(np.maximum(lo[0] - centres[..., 0], centres[..., 0] - hi[0]), 0)
-            dy = np.maximum(np.maximum(lo[1] - centres[..., 1], centres[..., 1] - hi[1]), 0)
-            dist = np.hypot(dx, dy)
+            dist = rects.distance(centres, np.array([lo[0], lo[1], hi[0], hi[1]]))
             success = dist <= cfg.object_distance
             view = grid.free & (dist >= 0.6) & (dist <= 2.0)
             target = (lo + hi) / 2
@@ -203,7 +225,7 @@ class World:
             obstacles[k, : len(g.obstacles)] = g.obstacles
         pose = np.array([[g.pose for g in goals] for goals in self.goals], np.float32)
         tscene = np.array([[g.scene for g in goals] for goals in self.goals], np.int32)
-        flat = render_poses(geometry, self.spec, tscene.reshape(-1), pose.reshape(-1, 4), self.cfg.camera_height)
+        flat = render_in_chunks(geometry, self.spec, self.cfg.camera_height, tscene.reshape(-1), pose.reshape(-1, 4))
         h = w = self.cfg.render.image_size
         return WorldArrays(
             geometry=geometry,
@@ -222,9 +244,27 @@ class World:
         )
 
 
-def render_poses(geometry, spec: render.CameraSpec, scene, pose, camera_height: float, chunk: int = 64):
-    """Render poses [N, 4] (x, y, yaw, tilt) in scenes [N] (host loop over chunks)."""
-    fn = jax.jit(lambda s, p: render.render_batch(geometry, s, cam_position(p, camera_height), p[:, 2], p[:, 3], spec))
+def share_shapes(worlds: list[World]) -> None:
+    """Pad the arrays of `worlds` (of one configuration) to their common largest shapes,
+    so that one function compiled for one of them takes any of them as data."""
+    shapes = [[a.shape for a in jax.tree_util.tree_leaves(w.arrays)] for w in worlds]
+    largest = [tuple(max(dims) for dims in zip(*leaf)) for leaf in zip(*shapes)]
+    target = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(worlds[0].arrays),
+                                          [jax.ShapeDtypeStruct(s, a.dtype) for s, a in
+                                           zip(largest, jax.tree_util.tree_leaves(worlds[0].arrays))])
+    for w in worlds:
+        w.arrays = w.arrays.padded_like(target)
+
+
+def render_poses(geometry, spec: render.CameraSpec, camera_height: float, scene, pose) -> render.Frame:
+    """Frames [N] seen from agent poses [N, 4] (x, y, yaw, tilt) in scenes [N] of a
+    batched `geometry`: the camera at `camera_height` above the pose."""
+    return render.render_batch(geometry, scene, cam_position(pose, camera_height), pose[:, 2], pose[:, 3], spec)
+
+
+def render_in_chunks(geometry, spec: render.CameraSpec, camera_height: float, scene, pose, chunk: int = 64):
+    """`render_poses` of many poses [N, 4] (host loop over chunks of one compiled shape)."""
+    fn = jax.jit(lambda s, p: render_poses(geometry, spec, camera_height, s, p))
     n = len(scene)
     outs = []
     for i in range(0, n, chunk):

@@ -10,6 +10,7 @@ are counted, so that short episodes are not favoured.
 
 from __future__ import annotations
 
+import collections
 import json
 import math
 import time
@@ -20,7 +21,9 @@ import jax
 import numpy as np
 
 from a2catvn_jax.agent.acting import POLICIES, act_as, initial_agent, observe
-from a2catvn_jax.run.restore import restore
+from a2catvn_jax.agent.networks import Networks
+from a2catvn_jax.env import NavEnv
+from a2catvn_jax.run.restore import HOUSES, Restored, locate, make_env, make_envs
 from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
 
 MAX_CHUNK = 128  # environment steps per compiled call
@@ -33,30 +36,54 @@ EPISODE_FIELDS = {  # per-episode list -> environment metric
 }
 
 
-def _chunk_fn(env, networks, steps: int, policy: str, video: bool):
-    """Jitted: `steps` environment steps of the policy in all environments."""
+_COMPILED: collections.OrderedDict = collections.OrderedDict()  # the jitted functions last used, by what fixes them
+_COMPILED_KEEP = 8
 
-    def run(params, target_feats, env_state, agent, key):
+
+def _compiled(key, make):
+    """The jitted function cached under `key`, made by `make()` the first time."""
+    if key not in _COMPILED:
+        _COMPILED[key] = make()
+        if len(_COMPILED) > _COMPILED_KEEP:
+            _COMPILED.popitem(last=False)
+    _COMPILED.move_to_end(key)
+    return _COMPILED[key]
+
+
+def _chunk_fn(env: NavEnv, networks: Networks, steps: int, policy: str, video: bool):
+    """Jitted: `steps` environment steps of the policy in all environments. The world is
+    an argument, so environments of one configuration and shapes share one compile."""
+
+    def run(params, world, target_feats, env_state, agent, key):
         def body(carry, k):
             env_state, agent = carry
             core, action = act_as(policy, networks, params, target_feats, agent, env_state.obs, k)
-            nxt = env.step(env_state, action)
+            nxt = env.step(env_state, action, world)
             out = {name: nxt.metrics[metric] for name, metric in EPISODE_FIELDS.items()}
             out["done"] = nxt.done
             if video:
                 info = env_state.info
-                out["video"] = {
-                    "rgb": env_state.obs["rgb"][0],
-                    "target_rgb": env_state.obs["target_rgb"][0],
-                    **{k: info[k][0] for k in ("pose", "target_pose", "scene", "goal")},
-                }
+                out["video"] = {"rgb": env_state.obs.rgb[0], "target_rgb": env_state.obs.target_rgb[0],
+                                "pose": info.pose[0], "target_pose": info.target_pose[0], "scene": info.scene[0],
+                                "goal": info.goal[0]}
             return (nxt, observe(core, action, nxt)), out
 
         key, sub = jax.random.split(key)
         (env_state, agent), out = jax.lax.scan(body, (env_state, agent), jax.random.split(sub, steps))
         return env_state, agent, key, out
 
-    return jax.jit(run)
+    return _compiled(("chunk", env.cfg, networks, steps, policy, video), lambda: jax.jit(run))
+
+
+def _check(episodes: int, policy: str, video, video_episodes: int) -> None:
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    if policy not in POLICIES:
+        raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
+    if video is not None:
+        if video_episodes < 1:
+            raise ValueError(f"video_episodes must be >= 1, got {video_episodes}")
+        check_video_path(video)
 
 
 def evaluate(
@@ -83,23 +110,48 @@ def evaluate(
     checkpoint), `ConfigError` (bad overrides), `ValueError` (bad arguments) and
     `VideoError`.
     """
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
-    if policy not in POLICIES:
-        raise ValueError(f"policy must be one of {POLICIES}, got {policy!r}")
-    if video is not None:
-        if video_episodes < 1:
-            raise ValueError(f"video_episodes must be >= 1, got {video_episodes}")
-        check_video_path(video)
-    cfg, _, env, networks, params, step, meta = restore(workdir, step, houses, overrides, log)
+    _check(episodes, policy, video, video_episodes)
+    if houses not in HOUSES:
+        raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
+    run = locate(workdir, step, overrides)
+    t0 = time.perf_counter()
+    env = make_env(run.cfg.env, houses)
+    log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
+    restored = run.restore(log)
+    return run_episodes(restored, env, houses, episodes, policy=policy, seed=seed, video=video,
+                        video_episodes=video_episodes, log=log)
+
+
+def evaluate_sets(workdir, episodes: int = 100, *, houses: Sequence[str] = HOUSES, step: Optional[int] = None,
+                  policies: Sequence[str] = ("sample",), seed: int = 0, overrides: Sequence[str] = (),
+                  log: Callable[[str], None] = print) -> dict:
+    """`evaluate` of one checkpoint in several house sets with several policies, restoring
+    it once and compiling once for all sets of one shape: {(houses, policy): result}."""
+    for p in policies:
+        _check(episodes, p, None, 1)
+    run = locate(workdir, step, overrides)
+    envs = make_envs(run.cfg.env, houses)
+    restored = run.restore(log)
+    return {(h, p): run_episodes(restored, envs[h], h, episodes, policy=p, seed=seed, log=log)
+            for h in houses for p in policies}
+
+
+def run_episodes(restored: Restored, env: NavEnv, houses: str, episodes: int, *, policy: str = "sample",
+                 seed: int = 0, video=None, video_episodes: int = 2, log: Callable[[str], None] = print) -> dict:
+    """Episodes of the restored agent in `env` (see `evaluate`)."""
+    _check(episodes, policy, video, video_episodes)
+    cfg, networks, params, step = restored.cfg, restored.networks, restored.params, restored.step
+    world = env.world.arrays
     B = env.num_envs
     per_env = math.ceil(episodes / B)
     chunk = min(MAX_CHUNK, per_env * cfg.env.max_episode_steps)
     run = _chunk_fn(env, networks, chunk, policy, video is not None)
     k_reset, key = jax.random.split(jax.random.PRNGKey(seed))
-    env_state = jax.jit(lambda k: env.reset(k, complexity=cfg.env.complexity))(k_reset)
+    reset = _compiled(("reset", env.cfg), lambda: jax.jit(lambda k, tau, w: env.reset(k, complexity=tau, world=w)))
+    env_state = reset(k_reset, cfg.env.complexity, world)
     agent = initial_agent(networks, B)
-    target_feats = jax.jit(networks.target_stream)(params, env.target_images()["rgb"])
+    target_stream = _compiled(("targets", networks), lambda: jax.jit(networks.target_stream))
+    target_feats = target_stream(params, env.target_images(world)["rgb"])
 
     found: list[list[dict]] = [[] for _ in range(B)]
     video_steps: list[dict] = []
@@ -107,7 +159,7 @@ def evaluate(
     steps = 0
     t0 = time.perf_counter()
     while min(len(f) for f in found) < per_env or (video is not None and video_done < video_episodes):
-        env_state, agent, key, out = run(params, target_feats, env_state, agent, key)
+        env_state, agent, key, out = run(params, world, target_feats, env_state, agent, key)
         out = jax.device_get(out)
         steps += chunk
         for t, b in zip(*np.nonzero(out["done"])):
@@ -127,9 +179,9 @@ def evaluate(
     counted = [e for env_episodes in found for e in env_episodes][:episodes]
     lists = {name: [e[name] for e in counted] for name in EPISODE_FIELDS}
     result = {
-        "workdir": str(workdir),
+        "workdir": str(restored.workdir),
         "step": step,
-        "frames": int(meta["frames"]),
+        "frames": restored.frames,
         "houses": houses,
         "scenes": [scene.name for scene in env.world.scenes],
         "policy": policy,

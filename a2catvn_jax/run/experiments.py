@@ -58,7 +58,7 @@ from a2catvn_jax.agent.update import total_updates
 from a2catvn_jax.config import CONFIGS, load_config, to_dict
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.run.checkpoint import Checkpointer
-from a2catvn_jax.run.evaluation import evaluate, to_json
+from a2catvn_jax.run.evaluation import evaluate_sets, to_json
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.plots import smooth
 from a2catvn_jax.run.pretraining import PRETRAINED_DIR, pretrain
@@ -223,16 +223,26 @@ def training_seconds(run: Run) -> Optional[float]:
     return json.loads(timing.read_text())["seconds"] if timing.exists() else None
 
 
-def evaluate_run(run: Run, houses: str, episodes: int, policy: str = "sample") -> dict:
-    """The evaluation of the run's last checkpoint, cached in its work directory."""
-    out = run.workdir / f"experiment_eval_{houses}_{policy}_{episodes}.json"
-    if out.exists():
-        result = json.loads(out.read_text())
-        if result["step"] == total_updates(run.cfg):
-            return result
-    result = evaluate(run.workdir, episodes, houses=houses, policy=policy, log=lambda _: None)
-    out.write_text(to_json(result))
-    return result
+def evaluate_run(run: Run, houses: Sequence[str], episodes: int, policy: str = "sample") -> dict:
+    """houses -> the evaluation of the run's last checkpoint in those houses, each cached
+    in its work directory; the missing ones are evaluated together (one restore, one
+    compile for the sets of one shape)."""
+    def path(h):
+        return run.workdir / f"experiment_eval_{h}_{policy}_{episodes}.json"
+
+    results = {}
+    for h in houses:
+        if path(h).exists():
+            result = json.loads(path(h).read_text())
+            if result["step"] == total_updates(run.cfg):
+                results[h] = result
+    missing = [h for h in houses if h not in results]
+    if missing:
+        fresh = evaluate_sets(run.workdir, episodes, houses=missing, policies=(policy,), log=lambda _: None)
+        for h in missing:
+            results[h] = fresh[(h, policy)]
+            path(h).write_text(to_json(results[h]))
+    return results
 
 
 # -- statistics -------------------------------------------------------------------------
@@ -473,12 +483,12 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
             log(f"  trained in {seconds / 60:.1f} min")
     evals = {}
     for run in runs:
-        for houses in exp.evaluations:
-            evals[(str(run.workdir), houses)] = evaluate_run(run, houses, episodes)
+        for houses, result in evaluate_run(run, exp.evaluations, episodes).items():
+            evals[(str(run.workdir), houses)] = result
         log(f"evaluated {run.variant.label}, seed {run.seed}: " + ", ".join(
             f"{h} {evals[(str(run.workdir), h)]['success_rate']:.2f}" for h in exp.evaluations))
-    baseline = {h: {k: evaluate_run(runs[0], h, episodes, policy="random")[k] for k in ("success_rate", "spl")}
-                for h in exp.evaluations}
+    random = evaluate_run(runs[0], exp.evaluations, episodes, policy="random")
+    baseline = {h: {k: random[h][k] for k in ("success_rate", "spl")} for h in exp.evaluations}
     summary = summarise(exp, runs, evals, baseline, threshold)
     wall = time.perf_counter() - t0
     summary.update(scale=scale, episodes=episodes, max_episode_steps=runs[0].cfg.env.max_episode_steps, overrides=list(overrides), machine=machine(),

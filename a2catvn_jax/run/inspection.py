@@ -26,7 +26,7 @@ from a2catvn_jax.agent.losses import DEPTH_SCALE, downsize_mean
 from a2catvn_jax.agent.networks import VN_HEADS, Networks
 from a2catvn_jax.env.scenes.plot import TopdownMap
 from a2catvn_jax.env.world import SEGMENTATION_COLORS
-from a2catvn_jax.run.restore import restore
+from a2catvn_jax.run.restore import locate, make_env
 
 RECORD_OBS = ("rgb", "depth", "segmentation_rgb", "target_rgb", "target_depth", "target_segmentation_rgb")
 RECORD_INFO = ("pose", "target_pose", "scene", "goal")
@@ -58,8 +58,10 @@ def load_agent(workdir, step: Optional[int] = None, houses: str = "train", overr
     `houses` and `overrides` are those of `python -m a2catvn_jax.evaluate` (the network's
     keys cannot change). Raises `CheckpointError`, `ConfigError` and `ValueError`.
     """
-    cfg, run_cfg, env, networks, params, step, meta = restore(workdir, step, houses, overrides)
-    return Agent(Path(workdir), run_cfg, cfg, env, networks, params, step, int(meta["frames"]))
+    run = locate(workdir, step, overrides)
+    env = make_env(run.cfg.env, houses)
+    r = run.restore()
+    return Agent(r.workdir, r.run_cfg, r.cfg, env, r.networks, r.params, r.step, r.frames)
 
 
 def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", env_index: int = 0) -> dict:
@@ -86,11 +88,11 @@ def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", e
     def step(params, target_feats, env_state, agent_state, key):
         core, action = act_as(policy, networks, params, target_feats, agent_state, env_state.obs, key)
         obs = env_state.obs
-        conv4, _ = networks.encode(params, obs["rgb"], target_feats[obs["target_index"]])
+        conv4, _ = networks.encode(params, obs.rgb, target_feats[obs.target_index])
         pred = networks.vn_heads(params, conv4)
         nxt = env.step(env_state, action)
-        out = {k: env_state.obs[k][env_index] for k in RECORD_OBS}
-        out.update({k: env_state.info[k][env_index] for k in RECORD_INFO})
+        out = {k: getattr(obs, k)[env_index] for k in RECORD_OBS}
+        out.update({k: getattr(env_state.info, k)[env_index] for k in RECORD_INFO})
         out.update(action=action[env_index], reward=nxt.reward[env_index], done=nxt.done[env_index],
                    success=nxt.metrics["success"][env_index],
                    depth_pred=pred["depth"][env_index] / DEPTH_SCALE,

@@ -61,7 +61,7 @@ def make_dataset(cfg, env: NavEnv, size: int, key) -> dict:
         tilt = jax.random.choice(keys[0], tilts, (CHUNK,))
         pose = pose.at[:, 3].set(tilt)
         frame = env.render_poses(scene, pose)
-        truth = frame_truth(cfg, {"depth": frame.depth, "segmentation": frame.cls})
+        truth = frame_truth(cfg, frame.depth, frame.cls)
         out = {"rgb": frame.rgb, "target": env.target_index(scene, goal)}
         out.update({name: x for name, x in (("depth_gt", truth.depth), ("seg_gt", truth.segmentation)) if x is not None})
         return out

@@ -1,22 +1,25 @@
-"""Restore a trained run to act: its configuration at evaluation settings, an environment
-in its training houses, in held-out houses or with new targets, and its parameters.
+"""Restore a trained run to act: its configuration at evaluation settings, its network
+and parameters, and environments in its training houses, in held-out houses or with
+new targets.
 
 Only the parameters are read from the checkpoint (not the optimiser state or the
 replay buffer). `eval_config` refuses overrides of keys the network's shapes depend on.
+`make_envs` pads the worlds of several house sets to common shapes, so functions
+compiled for one take the others' worlds as data (`NavEnv.step(..., world=...)`).
 """
 
 from __future__ import annotations
 
-import time
+import dataclasses
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 import jax
 
-from a2catvn_jax.agent.networks import make_networks
-from a2catvn_jax.config import ConfigError, apply_overrides
-from a2catvn_jax.env import NavEnv
-from a2catvn_jax.env.world import World, make_scenes
+from a2catvn_jax.agent.networks import Networks, Params, make_networks
+from a2catvn_jax.config import Config, ConfigError, apply_overrides
+from a2catvn_jax.env import NavEnv, World, action_names
+from a2catvn_jax.env.world import make_scenes, share_shapes
 from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError, config_differences, read_run_config
 
 HELD_OUT_OFFSET = 1_000_003  # scene seed offset of held-out houses
@@ -24,6 +27,22 @@ NEW_TARGETS_OFFSET = 2_000_029  # goal seed offset of new targets in the trainin
 HOUSES = ("train", "held-out", "new-targets")
 # Keys the network's shapes depend on ("agent." is the whole section).
 NETWORK_KEYS = ("agent.", "env.render.image_size", "env.action_set", "train.pixel_control_cell", "train.aux_downsize")
+
+
+@dataclasses.dataclass
+class Restored:
+    """A run's checkpoint, ready to act: the evaluation configuration (the run's at
+    complexity 1 with the overrides), the run's own, the network, its parameters, the
+    update restored, its training frames and the checkpoint's record."""
+
+    workdir: Path
+    cfg: Config
+    run_cfg: Config
+    networks: Networks
+    params: Params
+    step: int
+    frames: int
+    meta: dict
 
 
 def eval_config(run_cfg, overrides: Sequence[str] = ()):
@@ -42,45 +61,79 @@ def eval_config(run_cfg, overrides: Sequence[str] = ()):
     return cfg
 
 
-def make_env(env_cfg, houses: str = "train") -> NavEnv:
+def make_env(env_cfg, houses: str = "train", scenes: Optional[list] = None) -> NavEnv:
     """A `NavEnv` in the run's training houses, in held-out houses generated with offset
-    seeds, or in the training houses with new goals ("new-targets")."""
+    seeds, or in the training houses with new goals ("new-targets"). `scenes`: the
+    training houses when already built (train and new-targets use them)."""
     if houses not in HOUSES:
         raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
     if houses == "held-out" and env_cfg.scene.kind == "mjcf":
         raise ValueError("held-out houses need generated scenes; env.scene.kind is 'mjcf' (one fixed file)")
-    if houses == "new-targets":
-        world = World(env_cfg, make_scenes(env_cfg), seed=env_cfg.scene.seed + NEW_TARGETS_OFFSET)
-        return NavEnv(env_cfg, world=world)
-    return NavEnv(env_cfg, seed_offset=0 if houses == "train" else HELD_OUT_OFFSET)
+    if houses == "held-out":
+        scenes, seed = make_scenes(env_cfg, HELD_OUT_OFFSET), env_cfg.scene.seed + HELD_OUT_OFFSET
+    else:
+        scenes = scenes if scenes is not None else make_scenes(env_cfg)
+        seed = env_cfg.scene.seed + (NEW_TARGETS_OFFSET if houses == "new-targets" else 0)
+    return NavEnv(env_cfg, world=World(env_cfg, scenes, seed=seed))
 
 
-def restore(workdir, step: Optional[int] = None, houses: str = "train", overrides: Sequence[str] = (),
-            log: Callable[[str], None] = lambda _: None):
-    """Checkpoint `step` (default: the latest) of the run in `workdir`, ready to act in `houses`.
+def make_envs(env_cfg, houses=HOUSES) -> dict:
+    """houses -> `NavEnv` of each set, their worlds padded to common shapes
+    (`world.share_shapes`) so that they share compiled functions."""
+    for h in houses:
+        if h not in HOUSES:
+            raise ValueError(f"houses must be one of {HOUSES}, got {h!r}")
+    envs, scenes = {}, None
+    for h in houses:
+        envs[h] = make_env(env_cfg, h, scenes)
+        if h != "held-out":
+            scenes = envs[h].world.scenes
+    share_shapes([e.world for e in envs.values()])
+    return envs
 
-    Returns (cfg, run_cfg, env, networks, params, step, meta): the evaluation configuration
-    (the run's at complexity 1 with `overrides`), the run's own, the environment, the
-    network, its parameters, the update restored and the checkpoint's metadata.
-    """
-    if houses not in HOUSES:
-        raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
+
+@dataclasses.dataclass
+class Located:
+    """A run's checkpoint that exists, before its parameters are read: its work
+    directory, the evaluation and the run's configurations, and the update."""
+
+    workdir: Path
+    cfg: Config
+    run_cfg: Config
+    step: int
+
+    def restore(self, log: Callable[[str], None] = lambda _: None) -> Restored:
+        """Read the checkpoint's parameters (`CheckpointError` if they cannot be read)."""
+        networks = make_networks(self.cfg, len(action_names(self.cfg.env)))
+        ckpt = Checkpointer(self.workdir, create=False)
+        try:
+            template = jax.eval_shape(networks.init, jax.random.PRNGKey(0))
+            params, meta = ckpt.restore_params(template, self.run_cfg, self.step)
+        finally:
+            ckpt.close()
+        log(f"restored update {self.step} ({meta['frames']:,} training frames) from {ckpt.directory}")
+        return Restored(self.workdir, self.cfg, self.run_cfg, networks, params, self.step, int(meta["frames"]), meta)
+
+
+def locate(workdir, step: Optional[int] = None, overrides: Sequence[str] = ()) -> Located:
+    """Checkpoint `step` (default: the latest) of the run in `workdir`, checked to exist
+    (`CheckpointError`), with the evaluation configuration (`ConfigError` for overrides
+    that change the network)."""
     workdir = Path(workdir)
     if not workdir.is_dir():
         raise CheckpointError(f"{workdir}: no such directory")
     run_cfg = read_run_config(workdir)
     cfg = eval_config(run_cfg, overrides)
-
     ckpt = Checkpointer(workdir, create=False)
     try:
         step = ckpt.resolve_step(step)
-        t0 = time.perf_counter()
-        env = make_env(cfg.env, houses)
-        log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
-        # Only the parameters are read (not the optimiser state or the replay buffer).
-        networks = make_networks(cfg, env.num_actions)
-        params, meta = ckpt.restore_params(jax.eval_shape(networks.init, jax.random.PRNGKey(0)), run_cfg, step)
     finally:
         ckpt.close()
-    log(f"restored update {step} ({meta['frames']:,} training frames) from {ckpt.directory}")
-    return cfg, run_cfg, env, networks, params, step, meta
+    return Located(workdir, cfg, run_cfg, step)
+
+
+def restore(workdir, step: Optional[int] = None, overrides: Sequence[str] = (),
+            log: Callable[[str], None] = lambda _: None) -> Restored:
+    """The parameters of checkpoint `step` (default: the latest) of the run in `workdir`
+    (`locate`, then `Located.restore`)."""
+    return locate(workdir, step, overrides).restore(log)

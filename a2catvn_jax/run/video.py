@@ -49,12 +49,13 @@ def depth_image(depth: np.ndarray, far: float = 8.0) -> np.ndarray:
 
 
 def tile_frame(obs, i: int = 0) -> np.ndarray:
-    """[h, 4w, 3] uint8: observation | target | depth | segmentation of agent i."""
+    """[h, 4w, 3] uint8: observation | target | depth | segmentation of agent i (of an
+    `Observation`)."""
     parts = [
-        np.asarray(obs["rgb"][i]),
-        np.asarray(obs["target_rgb"][i]),
-        depth_image(np.asarray(obs["depth"][i])),
-        np.asarray(obs["segmentation_rgb"][i]),
+        np.asarray(obs.rgb[i]),
+        np.asarray(obs.target_rgb[i]),
+        depth_image(np.asarray(obs.depth[i])),
+        np.asarray(obs.segmentation_rgb[i]),
     ]
     return np.concatenate(parts, axis=1)
 
