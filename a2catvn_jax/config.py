@@ -1,29 +1,32 @@
-"""Typed configuration: YAML files -> nested frozen dataclasses, with CLI overrides.
+"""Typed configuration: YAML files -> nested frozen dataclasses validated by pydantic, with CLI overrides.
 
-The configuration is a tree of frozen dataclasses rooted at `Config`. Each section is
-a dataclass; each leaf is a plain value whose annotation (`int`, `float`, `bool`,
-`str`, `Optional[X]`, `tuple[...]`, `Literal[...]`) drives coercion and type checks.
-Adding a section is a matter of writing a dataclass and adding it as a field (with
-`field(default_factory=...)`) of its parent.
+The configuration is a tree of frozen dataclasses rooted at `Config`. Each leaf's
+annotation gives its type and, through pydantic's `Field`, its range (`Count`: an int
+>= 1, `Fraction`: a float in [0, 1], ...); choices are `Literal`s, list-valued keys are
+fixed-length tuples. Types are strict: an int key takes no bool, float or digit string;
+a float key takes ints (as floats) but no bool, string, nan or inf; a boolean key takes
+only true/false. Adding a section is a matter of writing a `_Section` dataclass and
+adding it as a field (with `field(default_factory=...)`) of its parent.
 
 Loading goes file -> dict -> dotted overrides merged into the dict -> one call to
-`from_dict`, which builds and validates the whole tree once. Every problem raises
-`ConfigError` (a `ValueError`) whose message starts with the full dotted key.
-
-Typical use::
-
-    cfg = load_config("configs/default.yaml", ["env.num_envs=32", "env.render.culling=false"])
-
-The command lines read `--config` and `--set` through `a2catvn_jax.cli`.
-
-Value checks live in each dataclass's `validate(self, path)` method, called by
-`from_dict` right after the section is built (sub-sections are validated before their
-parent, so a parent may rely on its children being individually valid).
+`from_dict`, where pydantic builds and validates the whole tree. Checks involving
+several keys are each section's `_cross_checks`, run as a pydantic model validator once
+the section's keys are individually valid (so a parent may rely on valid children).
+Every problem raises `ConfigError` (a `ValueError`) whose message starts with the full
+dotted key; an unknown key comes with the key likely meant. Building a dataclass
+directly (`EnvConfig(...)`, `dataclasses.replace`) does not validate; `.validate()` does.
 
 YAML is read with a stricter resolver than PyYAML's default YAML 1.1 one: only
 `true`/`false` (any case style) are booleans (so `yes`, `on`, `n` stay strings and are
 rejected for boolean keys), and exponent floats without a dot such as `1e-3` are
 floats rather than strings. Duplicate keys in a mapping are an error.
+
+Typical use::
+
+    cfg = load_config("configs/default.yaml", ["env.num_envs=32", "env.render.culling=false"])
+
+The command lines read `--config` and `--set` through `a2catvn_jax.cli`. The choice of
+pydantic over the alternatives: docs/config.md.
 """
 
 from __future__ import annotations
@@ -32,17 +35,34 @@ import copy
 import dataclasses
 import difflib
 import functools
-import math
-import numbers
 import os
 import re
 import types
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Optional, Union, get_args, get_origin, get_type_hints
+from typing import (
+    Annotated,
+    Any,
+    Literal,
+    Optional,
+    TypeVar,
+    Union,
+    get_args,
+    get_origin,
+    get_type_hints,
+)
 
 import yaml
+from pydantic import (
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    Strict,
+    TypeAdapter,
+    ValidationError,
+    model_validator,
+)
 
 from a2catvn_jax.errors import UserError
 
@@ -81,7 +101,33 @@ class ConfigError(ValueError, UserError):
         self.key = key
 
 
-# --------------------------------------------------------------------------- helpers
+# ----------------------------------------------------------------------- leaf types
+
+
+def _true_false(value: Any) -> Any:
+    """The words true / false (any case; a dict or a caller may hold them as text) as booleans."""
+    if isinstance(value, str) and value.strip().lower() in ("true", "false"):
+        return value.strip().lower() == "true"
+    return value
+
+
+def _list_as_tuple(value: Any) -> Any:
+    return tuple(value) if isinstance(value, list) else value
+
+
+T = TypeVar("T")
+Int = Annotated[int, Strict()]
+Float = Annotated[float, Strict()]  # strict still takes an int (as a float)
+Bool = Annotated[bool, Strict(), BeforeValidator(_true_false)]
+Str = Annotated[str, Strict()]
+Count = Annotated[int, Strict(), Field(ge=1)]
+Seed = Annotated[int, Strict(), Field(ge=0, lt=2**31)]
+Positive = Annotated[float, Strict(), Field(gt=0)]
+NonNegative = Annotated[float, Strict(), Field(ge=0)]
+Fraction = Annotated[float, Strict(), Field(ge=0, le=1)]
+# Lists (YAML's sequences) of a fixed length; nothing else (no string, set or scalar).
+Pair = Annotated[tuple[T, T], Strict(), BeforeValidator(_list_as_tuple)]
+Quad = Annotated[tuple[T, T, T, T], Strict(), BeforeValidator(_list_as_tuple)]
 
 
 def _join(path: str, name: str) -> str:
@@ -89,289 +135,262 @@ def _join(path: str, name: str) -> str:
     return f"{path}.{name}" if path else name
 
 
-def _check(cond: bool, key: str, msg: str) -> None:
-    """Raise `ConfigError("<key>: <msg>")` unless `cond` holds."""
-    if not cond:
-        raise ConfigError(f"{key}: {msg}", key=key)
+class _CrossCheckFailed(ValueError):
+    """Raised by the model validator; `from_dict` asks the section for its messages with full keys."""
+
+    def __init__(self, section: _Section):
+        super().__init__(f"{type(section).__name__}: cross-field check failed")
+        self.section = section
 
 
-def _describe(value: Any) -> str:
-    return f"{value!r} ({type(value).__name__})"
+class _Section:
+    """Base of the sections: the pydantic settings and the hooks every section shares."""
+
+    __pydantic_config__ = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    def _cross_checks(self, k: Callable[[str], str]) -> Iterator[tuple[str, str]]:
+        """Yield (full key, message) for each failed check that involves several keys (or
+        needs its own message); `k` maps a key of this section to its full dotted key."""
+        yield from ()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _empty_means_defaults(cls, data: Any) -> Any:
+        return {} if data is None else data  # `scene:` with nothing under it
+
+    @model_validator(mode="after")
+    def _run_cross_checks(self) -> Any:
+        if next(self._cross_checks(lambda key: key), None) is not None:
+            raise _CrossCheckFailed(self)
+        return self
+
+    def validate(self, path: str = "") -> None:
+        """Raise `ConfigError` (keys under `path`) unless this section is valid as a whole."""
+        from_dict(type(self), to_dict(self), path)
 
 
 # ----------------------------------------------------------------------- the sections
 
 
 @dataclass(frozen=True)
-class SceneConfig:
+class SceneConfig(_Section):
     """Which scenes (houses, rooms, mazes or a user MJCF file) the batch is built from."""
 
     kind: Literal["house", "room", "maze", "mjcf"] = "house"
-    num_scenes: int = 4  # distinct scenes in the batch
-    seed: int = 0  # scene generation seed
-    grid: tuple[int, int] = (2, 2)  # house room grid (rows, cols); maze cells
-    room_size: tuple[float, float] = (3.0, 4.5)  # min/max room side, metres
-    height: float = 2.6  # ceiling height, metres
-    mjcf_path: Optional[str] = None  # MJCF file, only (and always) with kind "mjcf"
+    num_scenes: Count = 4  # distinct scenes in the batch
+    seed: Seed = 0  # scene generation seed
+    grid: Pair[Int] = (2, 2)  # house room grid (rows, cols); maze cells
+    room_size: Pair[Float] = (3.0, 4.5)  # min/max room side, metres
+    height: Positive = 2.6  # ceiling height, metres
+    mjcf_path: Optional[Str] = None  # MJCF file, only (and always) with kind "mjcf"
 
-    def validate(self, path: str = "") -> None:
-        k = functools.partial(_join, path)
-        _check(self.num_scenes >= 1, k("num_scenes"), f"must be >= 1, got {self.num_scenes}")
-        _check(0 <= self.seed < 2**31, k("seed"), f"must be in [0, 2**31), got {self.seed}")
-        _check(all(g >= 1 for g in self.grid), k("grid"), f"both entries must be >= 1, got {list(self.grid)}")
+    def _cross_checks(self, k):
+        if min(self.grid) < 1:
+            yield k("grid"), f"both entries must be >= 1, got {list(self.grid)}"
         lo, hi = self.room_size
-        _check(lo >= 1.5, k("room_size"), f"minimum room side must be >= 1.5 m, got {lo}")
-        _check(lo <= hi, k("room_size"), f"minimum room side {lo} exceeds maximum {hi}")
-        _check(self.height > 0, k("height"), f"must be > 0, got {self.height}")
-        if self.kind == "mjcf":
-            _check(
-                self.mjcf_path is not None and self.mjcf_path.strip() != "",
-                k("mjcf_path"),
-                f"required when {k('kind')} is 'mjcf'",
-            )
-        else:
-            _check(
-                self.mjcf_path is None,
-                k("mjcf_path"),
-                f"only allowed when {k('kind')} is 'mjcf' (it is {self.kind!r}); "
-                f"set {k('kind')}=mjcf or remove {k('mjcf_path')}",
-            )
+        if lo < 1.5:
+            yield k("room_size"), f"minimum room side must be >= 1.5 m, got {lo}"
+        if lo > hi:
+            yield k("room_size"), f"minimum room side {lo} exceeds maximum {hi}"
+        if self.kind == "mjcf" and (self.mjcf_path or "").strip() == "":
+            yield k("mjcf_path"), f"required when {k('kind')} is 'mjcf'"
+        if self.kind != "mjcf" and self.mjcf_path is not None:
+            yield k("mjcf_path"), (f"only allowed when {k('kind')} is 'mjcf' (it is {self.kind!r}); "
+                                   f"set {k('kind')}=mjcf or remove {k('mjcf_path')}")
 
 
 @dataclass(frozen=True)
-class RenderConfig:
+class RenderConfig(_Section):
     """Camera images: resolution, field of view and renderer knobs."""
 
-    image_size: int = 64  # square images, pixels
-    fovy: float = 60.0  # vertical field of view, degrees
-    column_candidates: int = 24  # per-image-column candidate cap of the culled renderer
-    culling: bool = True
+    image_size: Int = 64  # square images, pixels
+    fovy: Annotated[float, Strict(), Field(gt=10, lt=120)] = 60.0  # vertical field of view, degrees
+    column_candidates: Count = 24  # per-image-column candidate cap of the culled renderer
+    culling: Bool = True
 
-    def validate(self, path: str = "") -> None:
-        k = functools.partial(_join, path)
-        _check(
-            self.image_size >= 16,
-            k("image_size"),
-            f"{self.image_size} is too small for the network (minimum 16)",
-        )
-        _check(self.image_size <= 512, k("image_size"), f"{self.image_size} is too large (maximum 512)")
-        _check(10.0 < self.fovy < 120.0, k("fovy"), f"must be in (10, 120) degrees, got {self.fovy}")
-        _check(self.column_candidates >= 1, k("column_candidates"), f"must be >= 1, got {self.column_candidates}")
+    def _cross_checks(self, k):
+        if self.image_size < 16:
+            yield k("image_size"), f"{self.image_size} is too small for the network (minimum 16)"
+        if self.image_size > 512:
+            yield k("image_size"), f"{self.image_size} is too large (maximum 512)"
 
 
 @dataclass(frozen=True)
-class EnvConfig:
+class EnvConfig(_Section):
     """The batched navigation environment: agents, goals, episodes, noise, curriculum."""
 
-    num_envs: int = 16  # B
+    num_envs: Count = 16  # B
     action_set: Literal["full", "no_tilt", "grid"] = "full"
     goal: Literal["image", "room", "object"] = "image"
-    goals_per_scene: int = 8
-    max_episode_steps: int = 900
-    success_distance: float = 0.5  # metres (image and room goals)
-    object_distance: float = 1.0  # metres (object goals)
-    agent_radius: float = 0.2  # metres
-    camera_height: float = 1.0  # metres
-    grid_resolution: float = 0.1  # occupancy grid cell size, metres
-    complexity: float = 1.0  # curriculum tau
-    position_noise: float = 0.02  # std, metres
-    heading_noise_deg: float = 2.0  # std, degrees
-    max_tilt_deg: float = 30.0  # camera tilt bound, degrees (tilt actions clamp to it)
+    goals_per_scene: Count = 8
+    max_episode_steps: Count = 900
+    success_distance: Positive = 0.5  # metres (image and room goals)
+    object_distance: Positive = 1.0  # metres (object goals)
+    agent_radius: Annotated[float, Strict(), Field(gt=0, lt=1)] = 0.2  # metres
+    camera_height: Positive = 1.0  # metres
+    grid_resolution: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.1  # occupancy grid cell size, metres
+    complexity: Fraction = 1.0  # curriculum tau
+    position_noise: NonNegative = 0.02  # std, metres
+    heading_noise_deg: NonNegative = 2.0  # std, degrees
+    max_tilt_deg: Annotated[float, Strict(), Field(ge=0, le=60)] = 30.0  # camera tilt bound, degrees
     scene: SceneConfig = field(default_factory=SceneConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
 
-    def validate(self, path: str = "") -> None:
-        k = functools.partial(_join, path)
-        for name in ("num_envs", "goals_per_scene", "max_episode_steps"):
-            v = getattr(self, name)
-            _check(v >= 1, k(name), f"must be >= 1, got {v}")
-        for name in ("success_distance", "object_distance", "camera_height"):
-            v = getattr(self, name)
-            _check(v > 0, k(name), f"must be > 0, got {v}")
-        _check(0 < self.agent_radius < 1, k("agent_radius"), f"must be in (0, 1) metres, got {self.agent_radius}")
-        _check(
-            0 < self.grid_resolution <= 1,
-            k("grid_resolution"),
-            f"must be in (0, 1] metres, got {self.grid_resolution}",
-        )
-        _check(0 <= self.complexity <= 1, k("complexity"), f"must be in [0, 1], got {self.complexity}")
-        for name in ("position_noise", "heading_noise_deg"):
-            v = getattr(self, name)
-            _check(v >= 0, k(name), f"must be >= 0, got {v}")
-        _check(0 <= self.max_tilt_deg <= 60, k("max_tilt_deg"), f"must be in [0, 60] degrees, got {self.max_tilt_deg}")
-
-        # Cross-field checks.
-        _check(
-            self.scene.height > self.camera_height + 0.1,
-            k("scene.height"),
-            f"ceiling height {self.scene.height} must exceed {k('camera_height')} "
-            f"({self.camera_height}) by more than 0.1 m",
-        )
+    def _cross_checks(self, k):
+        if self.scene.height <= self.camera_height + 0.1:
+            yield k("scene.height"), (f"ceiling height {self.scene.height} must exceed {k('camera_height')} "
+                                      f"({self.camera_height}) by more than 0.1 m")
         steepest = self.render.fovy / 2 + self.max_tilt_deg
-        _check(
-            steepest < 85.0,
-            k("max_tilt_deg"),
-            f"{k('render.fovy')} / 2 + {k('max_tilt_deg')} = {steepest:g} degrees must be < 85 "
-            f"so that camera rays never become vertical",
-        )
-        _check(
-            self.goal != "room" or self.scene.kind == "house",
-            k("goal"),
-            f"room-type goals need houses with rooms: {k('goal')}='room' requires "
-            f"{k('scene.kind')}='house' (it is {self.scene.kind!r})",
-        )
+        if steepest >= 85.0:
+            yield k("max_tilt_deg"), (f"{k('render.fovy')} / 2 + {k('max_tilt_deg')} = {steepest:g} degrees "
+                                      f"must be < 85 so that camera rays never become vertical")
+        if self.goal == "room" and self.scene.kind != "house":
+            yield k("goal"), (f"room-type goals need houses with rooms: {k('goal')}='room' requires "
+                              f"{k('scene.kind')}='house' (it is {self.scene.kind!r})")
 
 
 @dataclass(frozen=True)
-class AgentConfig:
+class AgentConfig(_Section):
     """The network: conv base (shared observation/target stream), memory, heads."""
 
     memory: Literal["lstm", "frame_stack"] = "lstm"  # LSTM, or the last `stack` frames and a dense layer
-    stack: int = 4  # frames of the frame-stack variant
-    conv_channels: tuple[int, int, int, int] = (16, 32, 32, 32)  # conv1, conv2 (shared stream), conv3, conv4
-    dense_size: int = 256  # the dense layer after the conv base
-    core_size: int = 256  # LSTM cells (or the frame-stack dense layer)
+    stack: Annotated[int, Strict(), Field(ge=2)] = 4  # frames of the frame-stack variant
+    conv_channels: Quad[Int] = (16, 32, 32, 32)  # conv1, conv2 (shared stream), conv3, conv4
+    dense_size: Count = 256  # the dense layer after the conv base
+    core_size: Count = 256  # LSTM cells (or the frame-stack dense layer)
     segmentation_loss: Literal["mse_rgb", "cross_entropy"] = "mse_rgb"  # class colours (paper) or class ids
-    space_to_depth: bool = False  # run conv1 (8x8/4) as a 2x2/1 conv on 4x4 pixel blocks (the same function)
+    space_to_depth: Bool = False  # run conv1 (8x8/4) as a 2x2/1 conv on 4x4 pixel blocks (the same function)
 
-    def validate(self, path: str = "") -> None:
-        k = functools.partial(_join, path)
-        _check(self.stack >= 2, k("stack"), f"must be >= 2, got {self.stack}")
-        _check(all(c >= 1 for c in self.conv_channels), k("conv_channels"), f"all must be >= 1, got {list(self.conv_channels)}")
-        for name in ("dense_size", "core_size"):
-            v = getattr(self, name)
-            _check(v >= 1, k(name), f"must be >= 1, got {v}")
+    def _cross_checks(self, k):
+        if min(self.conv_channels) < 1:
+            yield k("conv_channels"), f"all must be >= 1, got {list(self.conv_channels)}"
 
 
 @dataclass(frozen=True)
-class LossWeights:
+class LossWeights(_Section):
     """Weight of each loss term (paper, Table I). A weight of 0 removes the term's computation."""
 
-    actor: float = 1.0
-    critic: float = 0.5
-    entropy: float = 0.001
-    off_policy_critic: float = 1.0
-    pixel_control: float = 0.05
-    reward_prediction: float = 1.0
-    depth: float = 0.1
-    segmentation: float = 0.1  # observation segmentation
-    target_segmentation: float = 0.1
-
-    def validate(self, path: str = "") -> None:
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            _check(v >= 0, _join(path, f.name), f"must be >= 0, got {v}")
+    actor: NonNegative = 1.0
+    critic: NonNegative = 0.5
+    entropy: NonNegative = 0.001
+    off_policy_critic: NonNegative = 1.0
+    pixel_control: NonNegative = 0.05
+    reward_prediction: NonNegative = 1.0
+    depth: NonNegative = 0.1
+    segmentation: NonNegative = 0.1  # observation segmentation
+    target_segmentation: NonNegative = 0.1
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(_Section):
     """Batched A2C with off-policy critic and auxiliary tasks; optimiser; run bookkeeping."""
 
-    total_frames: int = 40_000_000  # f_max: agent steps over all environments
-    rollout_length: int = 20  # l
-    gamma: float = 0.99
-    learning_rate: float = 7e-4
+    total_frames: Count = 40_000_000  # f_max: agent steps over all environments
+    rollout_length: Count = 20  # l
+    gamma: Fraction = 0.99
+    learning_rate: Positive = 7e-4
     lr_schedule: Literal["linear", "constant"] = "linear"  # linear: lr * (f_max - f) / f_max
-    rmsprop_decay: float = 0.99  # RMSprop alpha
-    rmsprop_eps: float = 1e-5
-    max_grad_norm: float = 0.5
-    replay_size: int = 2000  # replay buffer, steps per environment (whole rollouts are kept)
-    replay_batch: int = 16  # replay sequences per update (off-policy critic, pixel control, reward prediction)
-    pixel_control_gamma: float = 0.9
-    pixel_control_cell: int = 4
-    aux_downsize: int = 4  # depth / segmentation targets are downsized by this factor
-    timeout_bootstrap: bool = True  # a time-out bootstraps the returns from the critic; false: terminal (paper)
+    rmsprop_decay: Fraction = 0.99  # RMSprop alpha
+    rmsprop_eps: Positive = 1e-5
+    max_grad_norm: Positive = 0.5
+    replay_size: Int = 2000  # replay buffer, steps per environment (whole rollouts are kept)
+    replay_batch: Count = 16  # replay sequences per update (off-policy critic, pixel control, reward prediction)
+    pixel_control_gamma: Fraction = 0.9
+    pixel_control_cell: Count = 4
+    aux_downsize: Count = 4  # depth / segmentation targets are downsized by this factor
+    timeout_bootstrap: Bool = True  # a time-out bootstraps the returns from the critic; false: terminal (paper)
     loss_weights: LossWeights = field(default_factory=LossWeights)
-    curriculum: bool = False  # complexity tau rises linearly between two frame counts (paper)
-    curriculum_complexity: tuple[float, float] = (0.3, 1.0)  # tau before the first and after the second
-    curriculum_frames: tuple[int, int] = (5_000_000, 10_000_000)
-    log_every: int = 10  # updates between log lines
-    checkpoint_every: int = 500  # updates between checkpoints (and one on exit)
-    keep_checkpoints: int = 3
+    curriculum: Bool = False  # complexity tau rises linearly between two frame counts (paper)
+    curriculum_complexity: Pair[Float] = (0.3, 1.0)  # tau before the first and after the second
+    curriculum_frames: Pair[Int] = (5_000_000, 10_000_000)
+    log_every: Count = 10  # updates between log lines
+    checkpoint_every: Count = 500  # updates between checkpoints (and one on exit)
+    keep_checkpoints: Count = 3
 
-    def validate(self, path: str = "") -> None:
-        k = functools.partial(_join, path)
-        for name in ("total_frames", "rollout_length", "replay_batch", "pixel_control_cell", "aux_downsize",
-                     "log_every", "checkpoint_every", "keep_checkpoints"):
-            v = getattr(self, name)
-            _check(v >= 1, k(name), f"must be >= 1, got {v}")
-        for name in ("gamma", "pixel_control_gamma", "rmsprop_decay"):
-            v = getattr(self, name)
-            _check(0 <= v <= 1, k(name), f"must be in [0, 1], got {v}")
-        for name in ("learning_rate", "rmsprop_eps", "max_grad_norm"):
-            v = getattr(self, name)
-            _check(v > 0, k(name), f"must be > 0, got {v}")
+    def _cross_checks(self, k):
         lo, hi = self.curriculum_complexity
-        _check(0 <= lo <= 1 and 0 <= hi <= 1, k("curriculum_complexity"), f"both must be in [0, 1], got {[lo, hi]}")
+        if not (0 <= lo <= 1 and 0 <= hi <= 1):
+            yield k("curriculum_complexity"), f"both must be in [0, 1], got {[lo, hi]}"
         f0, f1 = self.curriculum_frames
-        _check(0 <= f0 <= f1, k("curriculum_frames"), f"need 0 <= start <= end, got {[f0, f1]}")
-        _check(
-            self.replay_size >= self.rollout_length,
-            k("replay_size"),
-            f"must hold at least one rollout ({k('rollout_length')} = {self.rollout_length}), got {self.replay_size}",
-        )
+        if not 0 <= f0 <= f1:
+            yield k("curriculum_frames"), f"need 0 <= start <= end, got {[f0, f1]}"
+        if self.replay_size < self.rollout_length:
+            yield k("replay_size"), (f"must hold at least one rollout ({k('rollout_length')} = "
+                                     f"{self.rollout_length}), got {self.replay_size}")
 
 
 @dataclass(frozen=True)
-class PretrainConfig:
+class PretrainConfig(_Section):
     """Supervised pre-training of the conv base with the depth / segmentation heads (paper, Table I)."""
 
-    dataset_size: int = 200_000  # observations at random poses in the training scenes
-    epochs: int = 30
-    batch_size: int = 64
-    learning_rate: float = 1e-3  # Adam
-
-    def validate(self, path: str = "") -> None:
-        k = functools.partial(_join, path)
-        for name in ("dataset_size", "epochs", "batch_size"):
-            v = getattr(self, name)
-            _check(v >= 1, k(name), f"must be >= 1, got {v}")
-        _check(self.learning_rate > 0, k("learning_rate"), f"must be > 0, got {self.learning_rate}")
+    dataset_size: Count = 200_000  # observations at random poses in the training scenes
+    epochs: Count = 30
+    batch_size: Count = 64
+    learning_rate: Positive = 1e-3  # Adam
 
 
 @dataclass(frozen=True)
-class Config:
+class Config(_Section):
     """Root of the configuration tree."""
 
-    seed: int = 0  # master PRNG seed
+    seed: Seed = 0  # master PRNG seed
     env: EnvConfig = field(default_factory=EnvConfig)
     agent: AgentConfig = field(default_factory=AgentConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     pretrain: PretrainConfig = field(default_factory=PretrainConfig)
 
-    def validate(self, path: str = "") -> None:
-        _check(0 <= self.seed < 2**31, _join(path, "seed"), f"must be in [0, 2**31), got {self.seed}")
+    def _cross_checks(self, k):
         size = self.env.render.image_size
-        for name, factor in (("pixel_control_cell", self.train.pixel_control_cell), ("aux_downsize", self.train.aux_downsize)):
-            _check(
-                size // factor >= 2,
-                _join(path, f"train.{name}"),
-                f"{factor} leaves fewer than 2 cells across a {size}-pixel image (env.render.image_size)",
-            )
+        for name in ("pixel_control_cell", "aux_downsize"):
+            factor = getattr(self.train, name)
+            if size // factor < 2:
+                yield k(f"train.{name}"), (f"{factor} leaves fewer than 2 cells across a {size}-pixel image "
+                                           f"({k('env.render.image_size')})")
 
 
-# ---------------------------------------------------------------- generic machinery
+# ------------------------------------------------------------------ schema look-ups
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
+def _adapter(cls: type) -> TypeAdapter:
+    return TypeAdapter(cls)
+
+
+@functools.cache
 def _field_types(cls: type) -> dict[str, Any]:
-    """Resolved annotations of the init fields of dataclass `cls`, in field order."""
-    hints = get_type_hints(cls)
+    """Annotations (with their constraints) of the init fields of dataclass `cls`, in field order."""
+    hints = get_type_hints(cls, include_extras=True)
     return {f.name: hints[f.name] for f in dataclasses.fields(cls) if f.init}
 
 
+def _bare(tp: Any) -> Any:
+    """`tp` without `Annotated` constraints and without `Optional`."""
+    while True:
+        if get_origin(tp) is Annotated:
+            tp = get_args(tp)[0]
+        elif get_origin(tp) in (Union, types.UnionType) and type(None) in get_args(tp) and len(get_args(tp)) == 2:
+            tp = next(a for a in get_args(tp) if a is not type(None))
+        else:
+            return tp
+
+
 def _is_section(tp: Any) -> bool:
+    tp = _bare(tp)
     return isinstance(tp, type) and dataclasses.is_dataclass(tp)
 
 
-def _optional_inner(tp: Any) -> Any:
-    """X for Optional[X] / X | None, else None."""
-    if get_origin(tp) in (Union, types.UnionType):
-        args = get_args(tp)
-        rest = [a for a in args if a is not type(None)]
-        if len(rest) == 1 and len(args) == 2:
-            return rest[0]
-    return None
+def _annotation_at(root: type, loc: Sequence[Any]) -> Any:
+    """The annotation at pydantic error location `loc` (names, and indices into tuples)."""
+    tp: Any = root
+    for part in loc:
+        tp = _bare(tp)
+        if isinstance(part, int) and get_origin(tp) is tuple and part < len(get_args(tp)):
+            tp = get_args(tp)[part]
+        elif isinstance(part, str) and _is_section(tp):
+            tp = _field_types(tp).get(part, Any)
+        else:
+            return Any
+    return tp
 
 
 def _all_keys(cls: type, path: str = "") -> list[str]:
@@ -381,23 +400,26 @@ def _all_keys(cls: type, path: str = "") -> list[str]:
         key = _join(path, name)
         out.append(key)
         if _is_section(tp):
-            out.extend(_all_keys(tp, key))
+            out.extend(_all_keys(_bare(tp), key))
     return out
 
 
 def config_keys(cls: Optional[type] = None) -> list[str]:
     """All dotted leaf keys of the dataclass tree `cls` (default `Config`), in field order."""
     cls = Config if cls is None else cls
-    out = []
-    for name, tp in _field_types(cls).items():
-        if _is_section(tp):
-            out.extend(_join(name, k) for k in config_keys(tp))
-        else:
-            out.append(name)
-    return out
+    return [k for k in _all_keys(cls) if not _is_section(_annotation_at(cls, k.split(".")))]
+
+
+# ------------------------------------------------------------------------- messages
+
+
+def _describe(value: Any) -> str:
+    return f"{value!r} ({type(value).__name__})"
 
 
 def _unknown_key_error(cls: type, name: str, path: str, root: Optional[type]) -> ConfigError:
+    """The error for key `name` that section `cls` at `path` lacks, with the likely key meant
+    (looked for in the whole tree `root` too, when given)."""
     full = _join(path, name)
     valid = list(_field_types(cls))
     suggestions: list[str] = []
@@ -407,7 +429,7 @@ def _unknown_key_error(cls: type, name: str, path: str, root: Optional[type]) ->
     # A typo of a key in this section.
     suggestions += [_join(path, m) for m in difflib.get_close_matches(name, valid, n=3, cutoff=0.6)]
     if not suggestions and everywhere:
-        leaf_names = {}
+        leaf_names: dict[str, str] = {}
         for k in everywhere:
             leaf_names.setdefault(k.rsplit(".", 1)[-1], k)
         suggestions += [leaf_names[m] for m in difflib.get_close_matches(name, list(leaf_names), n=3, cutoff=0.7)]
@@ -420,125 +442,134 @@ def _unknown_key_error(cls: type, name: str, path: str, root: Optional[type]) ->
     return ConfigError(msg, key=full)
 
 
-def _coerce(tp: Any, value: Any, key: str, root: Optional[type]) -> Any:
-    """Check/convert `value` against annotation `tp`; `key` names it in errors."""
-    if _is_section(tp):
-        if value is None:
-            value = {}
-        if not isinstance(value, Mapping):
-            raise ConfigError(
-                f"{key}: is a section; expected a mapping of its keys "
-                f"({', '.join(_field_types(tp))}), got {_describe(value)}",
-                key=key,
-            )
-        return _from_dict(tp, value, key, root)
-    if tp is Any:
-        return value
-    origin = get_origin(tp)
-    if origin is Literal:
-        choices = get_args(tp)
-        for c in choices:
-            if value == c and type(value) is type(c):
-                return c
-        allowed = ", ".join(repr(c) for c in choices)
-        raise ConfigError(f"{key}: invalid value {value!r}; allowed values: {allowed}", key=key)
-    inner = _optional_inner(tp)
-    if inner is not None:
-        return None if value is None else _coerce(inner, value, key, root)
-    if origin in (Union, types.UnionType):
-        raise TypeError(f"unsupported config annotation {tp!r} for {key} (only Optional unions)")
-    if origin is tuple:
-        args = get_args(tp)
-        variadic = len(args) == 2 and args[1] is Ellipsis
-        elem_types = None if variadic else args
-        what = _type_name(args[0]) if variadic or len(set(args)) == 1 else "values"
-        if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
-            count = "" if variadic else f"{len(args)} "
-            raise ConfigError(f"{key}: expected a list of {count}{what}, got {_describe(value)}", key=key)
-        if not variadic and len(value) != len(args):
-            raise ConfigError(
-                f"{key}: expected a list of {len(args)} {what}, got {len(value)} items: {list(value)!r}", key=key
-            )
-        types_ = [args[0]] * len(value) if variadic else list(elem_types)
-        return tuple(_coerce(t, v, f"{key}[{i}]", root) for i, (t, v) in enumerate(zip(types_, value)))
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.strip().lower() in ("true", "false"):
-            return value.strip().lower() == "true"
-        raise ConfigError(f"{key}: expected true or false, got {_describe(value)}", key=key)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-            raise ConfigError(f"{key}: expected an integer, got {_describe(value)}", key=key)
-        return int(value)
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            raise ConfigError(f"{key}: expected a number, got {_describe(value)}", key=key)
-        f = float(value)
-        if not math.isfinite(f):
-            raise ConfigError(f"{key}: expected a finite number, got {value!r}", key=key)
-        return f
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{key}: expected a string, got {_describe(value)}", key=key)
-        return value
-    raise TypeError(f"unsupported config annotation {tp!r} for {key}")
+def _section_message(tp: Any, value: Any) -> str:
+    keys = ", ".join(_field_types(_bare(tp)))
+    return f"is a section; expected a mapping of its keys ({keys}), got {_describe(value)}"
 
 
-def _type_name(tp: Any) -> str:
-    return {int: "integers", float: "numbers", bool: "booleans", str: "strings"}.get(tp, "values")
+def _list_message(tp: Any, value: Any) -> str:
+    """'expected a list of 2 integers, got ...' for the fixed-length tuple annotation `tp`."""
+    args = get_args(_bare(tp))
+    kinds = {_bare(a) for a in args}
+    names = {int: "integers", float: "numbers", bool: "booleans", str: "strings"}
+    what = names.get(kinds.pop(), "values") if len(kinds) == 1 else "values"
+    if isinstance(value, (list, tuple)):
+        return f"expected a list of {len(args)} {what}, got {len(value)} items: {list(value)!r}"
+    return f"expected a list of {len(args)} {what}, got {_describe(value)}"
 
 
-def _from_dict(cls: type, data: Mapping, path: str, root: Optional[type]) -> Any:
-    hints = _field_types(cls)
-    for name in data:
-        if not isinstance(name, str) or name not in hints:
-            raise _unknown_key_error(cls, str(name), path, root)
-    kwargs = {}
-    defaults = {f.name: f for f in dataclasses.fields(cls)}
-    for name, tp in hints.items():
-        key = _join(path, name)
-        if name in data:
-            kwargs[name] = _coerce(tp, data[name], key, root)
-        elif _is_section(tp):
-            # Build absent sections through the same path so that they are validated
-            # too (starting from whatever the field's default produces).
-            f = defaults[name]
-            if f.default_factory is not dataclasses.MISSING:
-                default = f.default_factory()
-            elif f.default is not dataclasses.MISSING:
-                default = f.default
-            else:
-                default = None
-            kwargs[name] = _coerce(tp, to_dict(default) if default is not None else {}, key, root)
-    try:
-        obj = cls(**kwargs)
-    except TypeError as e:  # a required field without default is missing
-        raise ConfigError(f"{path or 'top level'}: {e}", key=path or None) from None
-    validate = getattr(obj, "validate", None)
-    if callable(validate):
-        validate(path)
-    return obj
+def _number(x: Any) -> str:
+    if isinstance(x, int) and x >= 2**16 and x & (x - 1) == 0:
+        return f"2**{x.bit_length() - 1}"
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def _range_message(tp: Any, value: Any) -> str:
+    """'must be in [0, 1], got 1.5' from the bounds `Field` put on annotation `tp`."""
+    bounds = {}
+    for meta in getattr(tp, "__metadata__", ()):
+        for constraint in getattr(meta, "metadata", ()):
+            for name in ("gt", "ge", "lt", "le"):
+                if getattr(constraint, name, None) is not None:
+                    bounds[name] = getattr(constraint, name)
+    lo = ("[", bounds["ge"]) if "ge" in bounds else ("(", bounds["gt"]) if "gt" in bounds else None
+    hi = ("]", bounds["le"]) if "le" in bounds else (")", bounds["lt"]) if "lt" in bounds else None
+    if lo and hi:
+        return f"must be in {lo[0]}{_number(lo[1])}, {_number(hi[1])}{hi[0]}, got {value!r}"
+    if lo:
+        return f"must be {'>=' if lo[0] == '[' else '>'} {_number(lo[1])}, got {value!r}"
+    if hi:
+        return f"must be {'<=' if hi[0] == ']' else '<'} {_number(hi[1])}, got {value!r}"
+    return f"out of range, got {value!r}"
+
+
+_TYPE_MESSAGES = {
+    "int_type": "expected an integer",
+    "float_type": "expected a number",
+    "bool_type": "expected true or false",
+    "string_type": "expected a string",
+}
+_RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
+_UNKNOWN_KEY_ERRORS = {"unexpected_keyword_argument", "extra_forbidden", "invalid_key"}
+
+
+def _key(path: str, loc: Sequence[Any]) -> str:
+    key = path
+    for part in loc:
+        key = f"{key}[{part}]" if isinstance(part, int) else _join(key, str(part))
+    return key
+
+
+def _problems(root: type, path: str, error: ValidationError) -> list[ConfigError]:
+    """One `ConfigError` per problem pydantic found validating `root` at `path`: unknown keys
+    first, then values of the wrong shape (a list of the wrong length, a section that is not
+    a mapping), then the rest."""
+    unknown, shapes, others = [], [], []
+    for err in error.errors():
+        kind, loc, value = err["type"], tuple(err["loc"]), err["input"]
+        if kind in _UNKNOWN_KEY_ERRORS:
+            section = _bare(_annotation_at(root, loc[:-1]))
+            unknown.append(_unknown_key_error(section, str(loc[-1]), _key(path, loc[:-1]), root if not path else None))
+            continue
+        if kind == "value_error" and isinstance(err.get("ctx", {}).get("error"), _CrossCheckFailed):
+            checks = err["ctx"]["error"].section._cross_checks(functools.partial(_join, _key(path, loc)))
+            others += [ConfigError(f"{key}: {msg}", key=key) for key, msg in checks]
+            continue
+        if kind == "missing" and loc and isinstance(loc[-1], int):  # a list shorter than its tuple
+            loc = loc[:-1]
+        tp, key = _annotation_at(root, loc), _key(path, loc)
+        if kind in ("dataclass_type", "dataclass_args_type"):
+            shapes.append(ConfigError(f"{key}: {_section_message(tp, value)}", key=key))
+            continue
+        if kind in ("tuple_type", "too_long", "too_short", "missing") and get_origin(_bare(tp)) is tuple:
+            shapes.append(ConfigError(f"{key}: {_list_message(tp, value)}", key=key))
+            continue
+        if kind in _TYPE_MESSAGES:
+            msg = f"{_TYPE_MESSAGES[kind]}, got {_describe(value)}"
+        elif kind == "finite_number":
+            msg = f"expected a finite number, got {value!r}"
+        elif kind == "literal_error":
+            msg = f"invalid value {value!r}; allowed values: {err['ctx']['expected']}"
+        elif kind in _RANGE_ERRORS:
+            msg = _range_message(tp, value)
+        else:
+            msg = f"{err['msg']}, got {_describe(value)}"
+        others.append(ConfigError(f"{key or 'top level'}: {msg}", key=key or None))
+    problems = {str(p): p for p in unknown + shapes + others}  # a short list misses several items
+    return list(problems.values())
+
+
+# ------------------------------------------------------------------- dicts and trees
 
 
 def from_dict(cls: type, data: Optional[Mapping], path: str = "") -> Any:
     """Build and validate an instance of dataclass `cls` from a (possibly partial) mapping.
 
-    Missing keys keep their defaults; sub-sections are built recursively; values are
-    coerced and type-checked from the annotations, then each section's `validate(path)`
-    runs. `path` is the dotted key of `cls` inside a larger tree, used in messages.
-    Raises `ConfigError` for unknown keys, wrong types and invalid values.
+    Missing keys keep their defaults; sub-sections are built recursively; pydantic checks
+    types and ranges, then the cross-field checks. `path` is the dotted key of `cls`
+    inside a larger tree, used in messages. Raises `ConfigError` for unknown keys, wrong
+    types and invalid values: the first problem found, naming the keys of any others.
     """
     if data is None:
         data = {}
     if not isinstance(data, Mapping):
         where = path or "top level"
         raise ConfigError(f"{where}: expected a mapping, got {_describe(data)}", key=path or None)
-    return _from_dict(cls, data, path, cls if not path else None)
+    try:
+        return _adapter(cls).validate_python(dict(data))
+    except ValidationError as e:
+        problems = _problems(cls, path, e)
+    first = problems[0]
+    more = list(dict.fromkeys(p.key or "top level" for p in problems[1:] if p.key != first.key))
+    if not more:
+        raise first from None
+    raise ConfigError(f"{first} (also invalid: {', '.join(more)})", key=first.key) from None
 
 
 def to_dict(instance: Any) -> Any:
-    """Plain nested dict of a config dataclass tree (tuples become lists), YAML/JSON ready."""
+    """Plain nested dict of a config dataclass tree (tuples become lists), YAML/JSON ready.
+
+    Structural, so that it also takes a tree built directly, not validated yet."""
     if dataclasses.is_dataclass(instance) and not isinstance(instance, type):
         return {f.name: to_dict(getattr(instance, f.name)) for f in dataclasses.fields(instance)}
     if isinstance(instance, (tuple, list)):
@@ -637,7 +668,7 @@ def parse_override(text: str) -> tuple[str, str]:
 
 def _override_value(raw: str, tp: Any, text: str, key: str) -> Any:
     """YAML-parse an override value; string-typed keys fall back to the raw text."""
-    stringy = tp is str or _optional_inner(tp) is str
+    stringy = _bare(tp) is str
     try:
         value = _yaml_load(raw)
     except yaml.YAMLError as e:
@@ -662,7 +693,7 @@ def _apply_override(data: dict, text: str, root: type) -> None:
         last = i == len(parts) - 1
         if _is_section(tp):
             if last:
-                leaves = ", ".join(_join(full, k) for k in _field_types(tp))
+                leaves = ", ".join(_join(full, k) for k in _field_types(_bare(tp)))
                 raise ConfigError(
                     f"{full}: is a section, not a value; override one of its keys instead ({leaves})", key=full
                 )
@@ -671,7 +702,7 @@ def _apply_override(data: dict, text: str, root: type) -> None:
                 child = node[name] = {}
             elif not isinstance(child, dict):
                 raise ConfigError(f"{full}: is a section; expected a mapping, got {_describe(child)}", key=full)
-            cls, node, path = tp, child, full
+            cls, node, path = _bare(tp), child, full
         else:
             if not last:
                 raise ConfigError(f"{full}: is a value, not a section, so {key!r} does not exist", key=full)
