@@ -33,6 +33,11 @@ CHECKPOINT_DIR = "checkpoints"
 BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_checkpoints")
 
 
+# The layout of the saved TrainState. 1: observations, info and the replay's rollouts as
+# dicts with one `done` flag; 2: typed, with `terminated` and `truncated` apart.
+FORMAT = 2
+
+
 class CheckpointError(UserError, RuntimeError):
     """A checkpoint that is missing, unreadable or written under another configuration."""
 
@@ -85,7 +90,7 @@ class Checkpointer:
         if step in self.steps():
             return step
         save_config(cfg, self.workdir / CONFIG_FILE)
-        meta = {"update": step, "frames": int(frames), "config": to_dict(cfg)}
+        meta = {"update": step, "frames": int(frames), "config": to_dict(cfg), "format": FORMAT}
         self.manager.save(
             step,
             args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
@@ -103,7 +108,14 @@ class Checkpointer:
         """
         step, path, meta = self._checked_meta(cfg, step)
         abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
-        state = self._restore_state(path, step, ocp.args.StandardRestore(abstract))
+        written = meta.get("format", 1)
+        if written == FORMAT:
+            state = self._restore_state(path, step, ocp.args.StandardRestore(abstract))
+        else:  # an earlier layout: read it as it was written, bring it up to date, reshape it
+            raw = self._restore_state(path, step, ocp.args.StandardRestore())
+            for upgrade in UPGRADES[written - 1 : FORMAT - 1]:
+                raw = upgrade(raw, from_dict(Config, meta["config"]))
+            state = _shaped_like(path, abstract, raw)
         self._check_shapes(path, abstract, state)
         return state, meta
 
@@ -176,6 +188,42 @@ class Checkpointer:
 
     def close(self):
         self.manager.close()
+
+
+def _upgrade_to_2(state: dict, cfg: Config) -> dict:
+    """Format 1 -> 2: the observation gains the target's index; `done` splits into
+    `terminated` (the step reached the goal: its reward is 1) and `truncated` (a time-out)."""
+    env = state["env_state"]
+    info, metrics = env["info"], env["metrics"]
+    env["obs"]["target_index"] = (np.asarray(info["scene"]) * cfg.env.goals_per_scene + np.asarray(info["goal"])).astype(np.int32)
+    done = np.asarray(env.pop("done"))
+    env["terminated"] = done & np.asarray(metrics["success"])
+    env["truncated"] = done & np.asarray(metrics["truncated"])
+    if state.get("replay"):
+        data = state["replay"]["data"]
+        done, reward = np.asarray(data.pop("done")), np.asarray(data["reward"])
+        data["terminated"], data["truncated"] = done & (reward != 0), done & (reward == 0)
+    return state
+
+
+UPGRADES = (_upgrade_to_2,)  # UPGRADES[k] brings format k + 1 to k + 2
+
+
+def _shaped_like(path, abstract, raw):
+    """The tree of `abstract` with each leaf taken from the nested dicts and lists `raw`
+    (as orbax reads a checkpoint without a target) at the same keys."""
+
+    def take(key_path, want):
+        node = raw
+        for k in key_path:
+            name = getattr(k, "name", getattr(k, "key", getattr(k, "idx", None)))
+            try:
+                node = node[name]
+            except (KeyError, IndexError, TypeError):
+                raise CheckpointError(f"{path}: the checkpoint has no {jax.tree_util.keystr(key_path)}") from None
+        return jax.numpy.asarray(node, want.dtype)
+
+    return jax.tree_util.tree_map_with_path(take, abstract)
 
 
 def _skip_closed_loop_errors(previous):
