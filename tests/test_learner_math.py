@@ -97,6 +97,89 @@ def test_actor_critic_losses_and_gradients():
     np.testing.assert_allclose(np.asarray(term(0, 0)), -(onehot - p) * adv[..., None] / n, atol=1e-6)
 
 
+def _numpy_returns(rewards, dones, bootstrap, gamma, truncated=None, values=None):
+    """Returns by the backward recursion, written from the equations of `bootstrapped_returns`."""
+    T, B = rewards.shape
+    out = np.zeros((T, B))
+    for b in range(B):
+        g = float(bootstrap[b])
+        for t in reversed(range(T)):
+            if truncated is not None and truncated[t, b]:
+                g = float(values[t, b])  # a time-out: the critic's value of the state it was taken from
+            else:
+                g = rewards[t, b] + gamma * (1.0 - dones[t, b]) * g
+            out[t, b] = g
+    return out
+
+
+def test_returns_bootstrap_from_the_critic_at_time_outs():
+    rng = np.random.default_rng(11)
+    T, B, gamma = 8, 4, 0.9
+    rewards = rng.normal(size=(T, B)).astype(np.float32)
+    terminated = rng.random((T, B)) < 0.15
+    truncated = (rng.random((T, B)) < 0.2) & ~terminated
+    truncated[3, 0], terminated[3, 0] = True, False
+    dones = terminated | truncated
+    values = rng.normal(size=(T, B)).astype(np.float32)
+    bootstrap = rng.normal(size=B).astype(np.float32)
+    args = tuple(map(jnp.asarray, (rewards, dones, bootstrap)))
+    got = losses.bootstrapped_returns(*args, gamma, jnp.asarray(truncated), jnp.asarray(values))
+    want = _numpy_returns(rewards, dones, bootstrap, gamma, truncated, values)
+    np.testing.assert_allclose(np.asarray(got), want, atol=1e-5)
+    # The step before a time-out bootstraps from the critic's value at the time-out's state.
+    np.testing.assert_allclose(float(got[2, 0]), rewards[2, 0] + gamma * (1 - dones[2, 0]) * values[3, 0], atol=1e-5)
+    # Without `truncated`, a time-out ends the sum like a terminal state (the paper's returns).
+    paper = losses.bootstrapped_returns(*args, gamma)
+    np.testing.assert_allclose(np.asarray(paper), _numpy_returns(rewards, dones, bootstrap, gamma), atol=1e-5)
+
+
+@pytest.mark.parametrize("timeouts", [False, True])
+def test_off_policy_critic_loss(timeouts):
+    rng = np.random.default_rng(12)
+    T, N, gamma = 6, 3, 0.95
+    values = rng.normal(size=(T + 1, N)).astype(np.float32)
+    rewards = rng.normal(size=(T, N)).astype(np.float32)
+    truncated = rng.random((T, N)) < 0.2
+    dones = truncated | (rng.random((T, N)) < 0.2)
+    g = _numpy_returns(rewards, dones, values[-1], gamma, truncated if timeouts else None, values[:-1])
+    want = np.mean(0.5 * (g - values[:-1]) ** 2)
+    args = tuple(map(jnp.asarray, (values, rewards, dones)))
+    trunc = jnp.asarray(truncated) if timeouts else None
+    got = losses.off_policy_critic_loss(*args, gamma, trunc)
+    np.testing.assert_allclose(float(got), want, rtol=1e-5)
+    # The gradient reaches the values only through v(s_t) in (g_t - v(s_t)), the returns held constant.
+    grad = jax.grad(lambda v: losses.off_policy_critic_loss(v, *args[1:], gamma, trunc))(args[0])
+    np.testing.assert_allclose(np.asarray(grad[:-1]), -(g - values[:-1]) / (T * N), atol=1e-6)
+    assert np.all(np.asarray(grad[-1]) == 0.0)
+
+
+def test_reward_prediction_loss():
+    rng = np.random.default_rng(13)
+    logits = rng.normal(size=(7, 3)).astype(np.float32)
+    reward = np.array([0.0, 1.0, -1.0, 0.5, 0.0, -0.2, 2.0], np.float32)
+    classes = np.where(reward > 0, 1, np.where(reward < 0, 2, 0))
+    np.testing.assert_array_equal(np.asarray(losses.reward_class(jnp.asarray(reward))), classes)
+    log_p = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
+    want = -log_p[np.arange(7), classes].mean()
+    np.testing.assert_allclose(float(losses.reward_prediction_loss(jnp.asarray(logits), jnp.asarray(reward))), want,
+                               rtol=1e-5)
+
+
+def test_vision_targets_and_losses():
+    rng = np.random.default_rng(14)
+    depth = rng.uniform(0.1, 9.0, size=(2, 8, 8)).astype(np.float32)
+    want = depth.reshape(2, 2, 4, 2, 4).mean(axis=(2, 4)) * losses.DEPTH_SCALE
+    np.testing.assert_allclose(np.asarray(losses.depth_targets(jnp.asarray(depth), 4)), want, rtol=1e-6)
+    pred, target = rng.normal(size=(2, 2, 2, 3)), rng.uniform(size=(2, 2, 2, 3))
+    np.testing.assert_allclose(float(losses.segmentation_loss(jnp.asarray(pred), jnp.asarray(target))),
+                               np.mean((pred - target) ** 2), rtol=1e-5)
+    logits, labels = rng.normal(size=(2, 2, 2, 5)), rng.integers(0, 5, size=(2, 2, 2))
+    log_p = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
+    want = -np.take_along_axis(log_p, labels[..., None], -1).mean()
+    np.testing.assert_allclose(float(losses.segmentation_loss(jnp.asarray(logits), jnp.asarray(labels))), want,
+                               rtol=1e-5)
+
+
 def _pc_inputs(seed, T, size, G, A):
     rng = np.random.default_rng(seed)
     rgb = rng.integers(0, 256, size=(T + 1, size, size, 3), dtype=np.uint8)
@@ -294,7 +377,7 @@ class Setup:
         def run(params, env_state, agent, key):
             feats = net.target_stream(params, env.target_images()["rgb"])
             traj, truth, *_ = acting.rollout(env, net, params, feats, env_state, agent, key, cfg.train.rollout_length,
-                                             lambda obs: update_lib.frame_truth(cfg, obs))
+                                             lambda obs: update_lib.frame_truth(cfg, obs.depth, obs.segmentation))
             return traj, truth
 
         return run(self.ts.params, self.ts.env_state, self.ts.agent, key)
@@ -428,13 +511,34 @@ def test_curriculum_schedule_drives_the_environment(lstm):
     fns = update_lib.make_update(lstm.env, lstm.net, cfg)
     per_update = update_lib.frames_per_update(cfg)  # 16 frames
     ts = fns.init(jax.random.PRNGKey(0))
-    assert np.allclose(np.asarray(ts.env_state.info["complexity"]), 0.2)
+    assert np.allclose(np.asarray(ts.env_state.info.complexity), 0.2)
     seen = []
     for _ in range(5):
         ts, metrics = fns.update(ts)
         seen.append(float(metrics["complexity"]))
-        assert np.allclose(np.asarray(ts.env_state.info["complexity"]), seen[-1])
+        assert np.allclose(np.asarray(ts.env_state.info.complexity), seen[-1])
     frames = np.arange(5) * per_update
     want = 0.2 + 0.6 * np.clip((frames - 16) / 32, 0, 1)
     np.testing.assert_allclose(seen, want, atol=1e-6)
     assert fns.update._cache_size() == 1
+
+
+def test_time_out_setting_reaches_the_losses(lstm):
+    """With episodes cut every 2 steps, the rollout holds time-outs; bootstrapping at them
+    (the default) and treating them as terminal (the paper) give different critic losses."""
+    cfgs = {flag: load_config(None, TINY + ["env.max_episode_steps=2", "env.success_distance=0.1",
+                                            f"train.timeout_bootstrap={flag}"]) for flag in ("true", "false")}
+    env = NavEnv(cfgs["true"].env, world=lstm.env.world)
+    setups = {flag: Setup(cfg, env, lstm.net, None, None) for flag, cfg in cfgs.items()}
+    fns = update_lib.make_update(env, lstm.net, cfgs["true"])
+    ts = fns.init(jax.random.PRNGKey(0))
+    for s in setups.values():
+        s.ts = ts
+    key = jax.random.PRNGKey(5)
+    traj, truth = setups["true"].rollout(key)
+    assert np.asarray(traj.truncated).any() and not np.asarray(traj.terminated).any()
+    terms = {flag: jax.jit(s.loss)(ts.params, traj, truth, None, key)[1] for flag, s in setups.items()}
+    assert float(terms["true"]["critic"]) != float(terms["false"]["critic"])
+    assert float(terms["true"]["actor"]) != float(terms["false"]["actor"])
+    _, metrics = update_lib.make_update(env, lstm.net, cfgs["false"]).update(ts)
+    assert _finite(metrics)

@@ -33,13 +33,13 @@ SCRIPT = textwrap.dedent(
     for _ in range(2):
         sharded, m_sharded = update(sharded)
         plain, m_plain = update(plain)
-    assert sharded.env_state.obs["rgb"].sharding.spec == jax.sharding.PartitionSpec("batch")
+    assert sharded.env_state.obs.rgb.sharding.spec == jax.sharding.PartitionSpec("batch")
     assert sharded.replay.data.rgb.sharding.spec == jax.sharding.PartitionSpec(None, None, "batch")
-    assert len(sharded.env_state.obs["rgb"].addressable_shards) == 2
-    assert sharded.env_state.obs["rgb"].addressable_shards[0].data.shape[0] == 2
+    assert len(sharded.env_state.obs.rgb.addressable_shards) == 2
+    assert sharded.env_state.obs.rgb.addressable_shards[0].data.shape[0] == 2
     for a, b in zip(jax.tree_util.tree_leaves(sharded.params), jax.tree_util.tree_leaves(plain.params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6)
-    np.testing.assert_array_equal(np.asarray(sharded.env_state.info["pose"]), np.asarray(plain.env_state.info["pose"]))
+    np.testing.assert_array_equal(np.asarray(sharded.env_state.info.pose), np.asarray(plain.env_state.info.pose))
     print("OK")
     """
 )
