@@ -33,6 +33,7 @@ from a2catvn_jax.env.scenes import (  # noqa: E402
     scene_to_mjcf,
     single_room,
 )
+from a2catvn_jax.run.topdown import save_topdown  # noqa: E402
 
 TYPE_RANK = {
     int(mujoco.mjtGeom.mjGEOM_BOX): 0,
@@ -391,9 +392,5 @@ def test_class_from_name():
 
 
 def test_plot_topdown(tmp_path, houses):
-    matplotlib = pytest.importorskip("matplotlib")
-    matplotlib.use("Agg")
-    from a2catvn_jax.env.scenes.plot import save_topdown
-
     out = save_topdown(houses[0], str(tmp_path / "top.png"), dpi=40)
     assert Path(out).stat().st_size > 1000

@@ -55,6 +55,7 @@ up to ~15% at grazing silhouettes, because OpenGL draws them tessellated
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import os
 import subprocess
@@ -618,8 +619,6 @@ def benchmark_fps(
 
 
 def _main(argv: Optional[Sequence[str]] = None) -> None:
-    import argparse
-
     p = argparse.ArgumentParser(description="Benchmark the MuJoCo GL reference renderer.")
     p.add_argument("--sizes", type=int, nargs="+", default=[64, 84, 174])
     p.add_argument("--n-objects", type=int, default=44)

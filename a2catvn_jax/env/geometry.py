@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from a2catvn_jax.env.scenes.spec import CLASS_NAMES, class_of_name
+from a2catvn_jax.env.scenes.spec import CLASS_NAMES, class_of_name, half_extents
 
 # Intersection families: world-aligned boxes (a box whose rotation permutes the world
 # axes is one), oriented boxes, ellipsoids (spheres included) and capsules.
@@ -25,6 +25,7 @@ _BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
 _SPHERE = int(mujoco.mjtGeom.mjGEOM_SPHERE)
 _CAPSULE = int(mujoco.mjtGeom.mjGEOM_CAPSULE)
 _ELLIPSOID = int(mujoco.mjtGeom.mjGEOM_ELLIPSOID)
+_TYPE_NAMES = {_BOX: "box", _SPHERE: "sphere", _CAPSULE: "capsule", _ELLIPSOID: "ellipsoid"}
 
 # Surface patterns used by the shader, chosen per semantic class.
 PATTERN_PLAIN, PATTERN_CHECKER, PATTERN_STRIPES, PATTERN_PLANKS = 0, 1, 2, 3
@@ -85,14 +86,7 @@ class Geometry:
 
 
 def _world_aabb(gtype: int, pos, rot, size) -> np.ndarray:
-    if gtype == _BOX:
-        half = np.abs(rot) @ size
-    elif gtype == _SPHERE:
-        half = np.full(3, size[0])
-    elif gtype == _ELLIPSOID:
-        half = np.sqrt((rot**2) @ (size**2))
-    else:  # capsule along local z
-        half = np.abs(rot[:, 2]) * size[1] + size[0]
+    half = half_extents(_TYPE_NAMES[gtype], rot, size)
     return np.concatenate([pos - half, pos + half])
 
 

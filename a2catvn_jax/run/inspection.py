@@ -24,9 +24,9 @@ from matplotlib.figure import Figure  # no pyplot: works with any backend; noteb
 from a2catvn_jax.agent.acting import POLICIES, act_as, initial_agent, observe
 from a2catvn_jax.agent.losses import DEPTH_SCALE, downsize_mean
 from a2catvn_jax.agent.networks import VN_HEADS, Networks
-from a2catvn_jax.env.scenes.plot import TopdownMap
 from a2catvn_jax.env.world import SEGMENTATION_COLORS
 from a2catvn_jax.run.restore import locate, make_env
+from a2catvn_jax.run.topdown import TopdownMap
 
 RECORD_OBS = ("rgb", "depth", "segmentation_rgb", "target_rgb", "target_depth", "target_segmentation_rgb")
 RECORD_INFO = ("pose", "target_pose", "scene", "goal")

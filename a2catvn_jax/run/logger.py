@@ -4,7 +4,7 @@
 averaged; episode counts and sums are added) and turns them into one row with the
 episode statistics of the interval: success rate, mean episode length, return and SPL.
 `MetricsWriter` appends rows to `metrics.jsonl` and `metrics.csv` in the work
-directory and, when tensorboardX is installed, to TensorBoard event files in `tb/`.
+directory and to TensorBoard event files in `tb/`.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from tensorboardX import SummaryWriter
 
 EPISODE_SUMS = ("episodes", "successes", "length_sum", "spl_sum", "return_sum")
 
@@ -59,14 +60,7 @@ class MetricsWriter:
         if self.csv_path.exists() and self.csv_path.stat().st_size:
             with open(self.csv_path, encoding="utf-8") as fh:
                 self._csv_fields = next(csv.reader(fh), None)
-        self.tb = None
-        if tensorboard:
-            try:
-                from tensorboardX import SummaryWriter
-            except ImportError:
-                SummaryWriter = None
-            if SummaryWriter is not None:
-                self.tb = SummaryWriter(str(self.workdir / "tb"))
+        self.tb = SummaryWriter(str(self.workdir / "tb")) if tensorboard else None
 
     def write(self, row: dict):
         row = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in row.items()}

@@ -10,8 +10,8 @@ import imageio.v2 as imageio
 import imageio.v3 as iio
 import numpy as np
 
-from a2catvn_jax.env.scenes.plot import TopdownMap
 from a2catvn_jax.errors import UserError
+from a2catvn_jax.run.topdown import TopdownMap
 
 VIDEO_PANEL = 128  # video images are upscaled by an integer factor to at least this height
 VIDEO_FPS = 10

@@ -21,7 +21,6 @@ from .mjcf import (
     scene_to_mjcf,
 )
 from .placement import free_space_ok
-from .plot import plot_topdown, save_topdown
 from .rooms import single_room
 from .spec import (
     CLASS_ID,
@@ -67,8 +66,6 @@ __all__ = [
     "make_scenes",
     "maze",
     "ordered_geoms",
-    "plot_topdown",
-    "save_topdown",
     "scene_from_mjcf",
     "scene_from_mjcf_file",
     "scene_to_mjcf",

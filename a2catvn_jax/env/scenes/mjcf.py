@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 
 from .errors import SceneError
-from .spec import CLASS_NAMES, GEOM_TYPES, Geom, Scene, class_of_name
+from .spec import CLASS_NAMES, GEOM_TYPES, Geom, Scene, class_of_name, half_extents
 
 PAD_PREFIX = "pad_"
 PAD_DEPTH = -100.0  # padding geom i of a type sits at z = PAD_DEPTH - i
@@ -203,15 +203,7 @@ def geom_aabb(g: Geom) -> tuple[np.ndarray, np.ndarray]:
             [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
         ]
     )
-    s = g.size
-    if g.type == "box":
-        half = np.abs(rot) @ s[:3]
-    elif g.type == "sphere":
-        half = np.full(3, s[0])
-    elif g.type == "capsule":
-        half = np.abs(rot[:, 2]) * s[1] + s[0]
-    else:  # ellipsoid: support function along each world axis
-        half = np.sqrt((rot * s[:3][None, :]) ** 2 @ np.ones(3))
+    half = half_extents(g.type, rot, g.size)
     return g.pos - half, g.pos + half
 
 

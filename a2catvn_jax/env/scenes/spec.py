@@ -62,6 +62,20 @@ ROOM_TYPE_ID = {name: i for i, name in enumerate(ROOM_TYPES)}
 GEOM_TYPES = ("box", "sphere", "capsule", "ellipsoid")
 
 
+def half_extents(gtype: str, rot: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """Half-sizes [3] along the world axes of the axis-aligned box around a geom of type
+    `gtype` with world-from-local rotation `rot` [3, 3] and MuJoCo size parameters `size`
+    (exact for every type: a box's corners, an ellipsoid's support along each axis, a
+    capsule's segment grown by its radius)."""
+    if gtype == "box":
+        return np.abs(rot) @ size[:3]
+    if gtype == "sphere":
+        return np.full(3, size[0])
+    if gtype == "capsule":  # along local z
+        return np.abs(rot[:, 2]) * size[1] + size[0]
+    return np.sqrt((rot**2) @ (size[:3] ** 2))  # ellipsoid
+
+
 def class_of_name(name: str) -> int:
     """Semantic class id of a geom name, 0 if none.
 

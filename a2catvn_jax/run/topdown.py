@@ -1,13 +1,16 @@
-"""Top-down drawings of scenes (matplotlib), e.g. as the background of path maps."""
+"""Top-down drawings of scenes (matplotlib, without pyplot), e.g. as the background of path maps."""
 
 from __future__ import annotations
 
 from typing import Optional
 
+import matplotlib.patches as mpatches
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-from .mjcf import geom_aabb
-from .spec import CLASS_ID, Scene, class_colors
+from a2catvn_jax.env.scenes.mjcf import geom_aabb
+from a2catvn_jax.env.scenes.spec import CLASS_ID, Scene, class_colors
 
 
 def plot_topdown(
@@ -26,13 +29,10 @@ def plot_topdown(
     capsules are drawn as their xy bounding boxes, spheres and vertical capsules as
     discs, ellipsoids as ellipses.
     """
-    import matplotlib.patches as mpatches
-    import matplotlib.pyplot as plt
-
     if color_by not in ("rgba", "class"):
         raise ValueError(f"color_by must be 'rgba' or 'class', got {color_by!r}")
     if ax is None:
-        _, ax = plt.subplots(figsize=(8, 8))
+        ax = Figure(figsize=(8, 8)).subplots()
     table = class_colors() / 255.0
     items = []
     for g in scene.geoms:
@@ -78,19 +78,13 @@ def plot_topdown(
 
 def save_topdown(scene: Scene, path: str, *, color_by: str = "rgba", dpi: int = 120, size: Optional[float] = None):
     """Render `plot_topdown` of a scene to an image file."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     x0, y0, x1, y1 = scene.bounds
     scale = size or 8.0
     aspect = (y1 - y0 + 0.6) / max(x1 - x0 + 0.6, 1e-6)
-    fig, ax = plt.subplots(figsize=(scale, max(2.0, scale * aspect)))
-    plot_topdown(scene, ax, color_by=color_by)
+    fig = Figure(figsize=(scale, max(2.0, scale * aspect)))
+    plot_topdown(scene, fig.subplots(), color_by=color_by)
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
-    plt.close(fig)
     return path
 
 
@@ -102,9 +96,6 @@ class TopdownMap:
     """
 
     def __init__(self, scene: Scene, size: int = 128, *, color_by: str = "rgba"):
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
         self.size = size
         self.fig = Figure(figsize=(1.0, 1.0), dpi=size)
         self.canvas = FigureCanvasAgg(self.fig)
