@@ -1,36 +1,13 @@
 """Comparisons of the method's variants: train with several seeds, evaluate, plot, tabulate.
 
-    python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1] [--episodes 100]
-        [--root runs/experiments] [--docs docs] [--set KEY=VALUE ...]
-    python -m a2catvn_jax.experiments --list
-
-Experiments (`EXPERIMENTS`):
-  aux             A2CAT-VN vs A2C+UNREAL vs plain A2C (image goals in one house)
-  memory          LSTM vs frame stack (mazes, UNREAL auxiliary tasks)
-  pretraining     with vs without supervised pre-training (image goals in one house)
-  curriculum      with vs without the complexity curriculum (image goals in one house)
-  generalisation  room-type goals over 16 houses; held-out houses and new targets
-  clipping        A2CAT-VN with the gradient-norm clip of Table I (0.5) vs 40, and A2C
-  grid            the grid action set on small rooms (A2CAT-VN vs A2C)
-
-Each experiment names a configuration of `configs/`: `NAME_cpu.yaml` at `--scale cpu`
-(minutes per run on a laptop CPU), `NAME.yaml` at `--scale paper` (the paper's sizes,
-for a GPU). Every variant is trained once per seed (`seed=S`; the houses stay the same)
-in a work directory named by the hash of its configuration, so a variant shared by two
-experiments (e.g. A2CAT-VN in `aux`, the baseline of `curriculum`) is trained once, and
-an interrupted experiment resumes: finished runs are kept, unfinished ones continue
-from their last checkpoint. Pre-trained variants first run `pretrain` with the same
-seed. Each run is evaluated with the sampled policy in its training houses, with new
-targets in them and in held-out houses (`evaluate --houses`), and a uniformly random
-policy gives the baseline.
-
-Outputs: `DOCS/experiments/NAME_SCALE.png` (training success rate and episode length
-against frames: the mean over seeds, shaded ± one standard error), `ROOT/SCALE/NAME.json`
-(every number, 95% t-intervals of the curves included), and a section of `DOCS/results.md` between the markers
-`<!-- experiment NAME SCALE -->` and `<!-- end experiment NAME SCALE -->` (rewritten on
-each run; text outside the markers is kept) with the command, machine, date, wall time
-and a table: frames until the smoothed training success rate first reaches the
-experiment's threshold, final training success, and evaluation success and SPL.
+`EXPERIMENTS` names each comparison: a configuration of `configs/` (`NAME_cpu.yaml`
+or `NAME.yaml` by scale) and its variants (overrides, pre-training). `plan` gives
+every (variant, seed) run a work directory named by the hash of its configuration,
+so a variant two experiments share is trained once; `run_experiment` trains what is
+not finished (resuming what was interrupted), evaluates each run in its house sets
+(`run.evaluation.evaluate_sets`, cached beside the run) against a uniformly random
+policy, and writes the curves, a JSON summary and a section of `docs/results.md`.
+The command line and what it writes: `python -m a2catvn_jax.experiments --help`.
 """
 
 from __future__ import annotations
