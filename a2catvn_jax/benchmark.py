@@ -57,9 +57,10 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=320, help="network: (observation, target) pairs per pass")
     parser.add_argument("--targets", type=int, default=16, help="network: distinct targets among them")
     parser.add_argument("--repeats", type=int, default=5, help="network: timed passes")
-    parser.add_argument("--set", nargs="+", default=[], dest="overrides", metavar="KEY=VALUE")
+    cli.add_config_args(parser, config=False, help="configuration changes applied to every benchmarked setting")
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args(argv)
+    overrides = cli.overrides_of(args)
     _header()
     with cli.errors(parser, code=1):
         if args.what == "train":
@@ -67,12 +68,12 @@ def main(argv=None) -> None:
             print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'env fps':>9} {'env share':>10}")
             for name in args.configs:
                 extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
-                r = bench_train(name, extra + list(args.overrides), args.updates)
+                r = bench_train(name, extra + overrides, args.updates)
                 rows.append(r)
                 print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
                       f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
         elif args.what == "network":
-            r = bench_network(args.resolution, args.frames, args.targets, args.repeats, args.overrides)
+            r = bench_network(args.resolution, args.frames, args.targets, args.repeats, overrides)
             rows = [r]
             print(f"forward+backward, {args.frames} frames at {args.resolution}x{args.resolution}, frames/s:")
             print(f"  JAX, target stream once per distinct target ({args.targets}): {r['jax_fps']:.0f}")
@@ -84,13 +85,13 @@ def main(argv=None) -> None:
                 print(f"  ratio JAX as trained / PyTorch: {r['jax_fps'] / r['torch_fps']:.2f}; "
                       f"like for like: {r['jax_per_frame_fps'] / r['torch_fps']:.2f}")
         else:
-            rows = _bench_env_table(args)
+            rows = _bench_env_table(args, overrides)
         if args.json:
             with open(args.json, "w") as f:
                 json.dump(rows, f, indent=1)
 
 
-def _bench_env_table(args) -> list:
+def _bench_env_table(args, overrides) -> list:
     rows = []
     gl_cache = {}
     header = f"{'batch':>6} {'res':>5} {'geoms':>6} {'env fps':>10} {'compile s':>10} {'GL fps':>8} {'ratio':>7}"
@@ -100,7 +101,7 @@ def _bench_env_table(args) -> list:
             if batch * res * res > args.max_pixels:
                 print(f"{batch:>6} {res:>5}  skipped (batch*pixels > --max-pixels)")
                 continue
-            r = bench_env(batch, res, args.steps, args.overrides)
+            r = bench_env(batch, res, args.steps, overrides)
             env = r.pop("env")
             poses = r.pop("poses")
             if not args.no_gl and res not in gl_cache:
