@@ -540,5 +540,4 @@ def test_time_out_setting_reaches_the_losses(lstm):
     terms = {flag: jax.jit(s.loss)(ts.params, traj, truth, None, key)[1] for flag, s in setups.items()}
     assert float(terms["true"]["critic"]) != float(terms["false"]["critic"])
     assert float(terms["true"]["actor"]) != float(terms["false"]["actor"])
-    _, metrics = update_lib.make_update(env, lstm.net, cfgs["false"]).update(ts)
-    assert _finite(metrics)
+    assert _finite(terms)
