@@ -164,8 +164,9 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(tmp_path):
     assert json.dumps(meta)  # the record is plain JSON
 
 
-def test_ctrl_c_saves_a_checkpoint(tmp_path):
-    """SIGINT stops the command after the current update, with a checkpoint of it."""
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_saves_a_checkpoint(tmp_path, signal_name):
+    """SIGINT (Ctrl-C) or SIGTERM stops the command after the current update, with a checkpoint of it."""
     import os
     import signal
     import subprocess
@@ -183,7 +184,7 @@ def test_ctrl_c_saves_a_checkpoint(tmp_path):
             break
         time.sleep(0.5)
     assert proc.poll() is None, proc.communicate()[1][-2000:]
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(getattr(signal, signal_name))
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err[-2000:]
     last = read_jsonl(metrics)[-1]["update"]

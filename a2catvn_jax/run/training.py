@@ -34,7 +34,8 @@ class TrainingError(UserError, RuntimeError):
 
 
 class _StopFlag:
-    """First Ctrl-C asks the loop to stop after the current update; the second interrupts."""
+    """The first Ctrl-C (or SIGTERM, as `timeout` and job schedulers send) asks the loop to
+    stop after the current update and checkpoint; the second interrupts."""
 
     def __init__(self):
         self.stop = False
@@ -86,7 +87,7 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     writer = MetricsWriter(workdir)
     interval = Interval()
     stop = _StopFlag()
-    previous = signal.signal(signal.SIGINT, stop)
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     bar = None
     if progress:
         bar = tqdm(total=end, initial=start, unit="upd", dynamic_ncols=True, file=sys.stderr)
@@ -126,7 +127,8 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
                 ckpt.save(state, cfg, update * per_update)
         clean_exit = True
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
         if bar is not None:
             bar.close()
         writer.close()
