@@ -5,7 +5,7 @@
 
 With no arguments it trains the quickstart configuration (`configs/quickstart.yaml`)
 in `runs/quickstart`. The work directory receives `config.yaml`, orbax checkpoints
-(`checkpoints/`, every `train.checkpoint_every` updates and on exit, Ctrl-C
+(`checkpoints/`, every `train.checkpoint_every` updates and on exit, Ctrl-C or SIGTERM
 included), `metrics.jsonl`, `metrics.csv` and TensorBoard logs (`tb/`).
 
 `--resume` continues the run in the work directory from its latest checkpoint, with
