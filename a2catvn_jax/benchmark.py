@@ -10,14 +10,14 @@ with compile times; and, for the same house MJCF at the same resolution, MuJoCo'
 OpenGL renderer (`mujoco.Renderer`, RGB + depth + segmentation passes) at the same
 agent poses, and the ratio of the two.
 
-`train`: frames/s of `Learner.update` (rollout, replay, every loss, optimiser step)
+`train`: frames/s of the training update (rollout, replay, every loss, optimiser step)
 for `configs/quickstart.yaml` and `configs/paper.yaml` (Table I: 16 environments,
 20-step rollouts, every auxiliary task, 4 houses of 2x2 rooms) at `--paper-resolution`
 pixels, with compile time and the share of the time spent in the environment (a
 rollout of random actions timed alone).
 
 `network`: forward+backward frames/s of the conv base with the depth and segmentation
-heads on `--frames` (observation, target) pairs: as the learner runs it (the target
+heads on `--frames` (observation, target) pairs: as the update runs it (the target
 stream once per distinct target), with both streams computed for every frame, and
 the same network in PyTorch (`pip install torch==2.13.0`), with the ratio.
 """

@@ -121,7 +121,7 @@ class Checkpointer:
 
     def restore_params(self, template, cfg: Optional[Config] = None, step: Optional[int] = None):
         """(params, meta): only the network parameters of checkpoint `step`, shaped like
-        `template` (e.g. `jax.eval_shape(learner.init_params, key)`); the optimiser state
+        `template` (e.g. `jax.eval_shape(networks.init, key)`); the optimiser state
         and replay buffer stay on disk."""
         step, path, meta = self._checked_meta(cfg, step)
         abstract = {"params": jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)}

@@ -1,6 +1,6 @@
 """Training metrics: summed over a logging interval, written as JSON lines, CSV and TensorBoard.
 
-`Interval` accumulates the per-update metrics of `Learner.update` (loss terms are
+`Interval` accumulates the per-update metrics of the training update (loss terms are
 averaged; episode counts and sums are added) and turns them into one row with the
 episode statistics of the interval: success rate, mean episode length, return and SPL.
 `MetricsWriter` appends rows to `metrics.jsonl` and `metrics.csv` in the work
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from tensorboardX import SummaryWriter
 
-EPISODE_SUMS = ("episodes", "successes", "length_sum", "spl_sum", "return_sum")
+from a2catvn_jax.agent.acting import EPISODE_STATS
 
 
 class Interval:
@@ -39,7 +39,7 @@ class Interval:
     def row(self) -> dict:
         """Means of the loss terms and the episode statistics of the interval."""
         n = max(self.updates, 1)
-        row = {k: v / n for k, v in self.sums.items() if k not in EPISODE_SUMS}
+        row = {k: v / n for k, v in self.sums.items() if k not in EPISODE_STATS}
         episodes = self.sums.get("episodes", 0.0)
         row["episodes"] = int(episodes)
         for name, total in (("success_rate", "successes"), ("episode_length", "length_sum"),
