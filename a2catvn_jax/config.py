@@ -124,6 +124,7 @@ Count = Annotated[int, Strict(), Field(ge=1)]
 Seed = Annotated[int, Strict(), Field(ge=0, lt=2**31)]
 Positive = Annotated[float, Strict(), Field(gt=0)]
 NonNegative = Annotated[float, Strict(), Field(ge=0)]
+Every = Annotated[int, Strict(), Field(ge=0)]  # a period in updates; 0: never
 Fraction = Annotated[float, Strict(), Field(ge=0, le=1)]
 # Lists (YAML's sequences) of a fixed length; nothing else (no string, set or scalar).
 Pair = Annotated[tuple[T, T], Strict(), BeforeValidator(_list_as_tuple)]
@@ -306,8 +307,12 @@ class TrainConfig(_Section):
     log_every: Count = 10  # updates between log lines
     checkpoint_every: Count = 500  # updates between checkpoints (and one on exit)
     keep_checkpoints: Count = 3
+    grad_norm_every: Every = 0  # log each loss term's gradient norm on the shared conv layers every N updates (0: off)
 
     def _cross_checks(self, k):
+        if self.grad_norm_every % self.log_every:
+            yield k("grad_norm_every"), (f"must be a multiple of {k('log_every')} ({self.log_every}): the norms are "
+                                         f"written with the log rows, got {self.grad_norm_every}")
         lo, hi = self.curriculum_complexity
         if not (0 <= lo <= 1 and 0 <= hi <= 1):
             yield k("curriculum_complexity"), f"both must be in [0, 1], got {[lo, hi]}"

@@ -541,3 +541,24 @@ def test_time_out_setting_reaches_the_losses(lstm):
     assert float(terms["true"]["critic"]) != float(terms["false"]["critic"])
     assert float(terms["true"]["actor"]) != float(terms["false"]["actor"])
     assert _finite(terms)
+
+
+def test_grad_norms_of_each_term_on_the_shared_layers(lstm):
+    """The diagnostic's per-term norms are the norms of each weighted term's own gradient
+    on conv1-conv4, computed here directly."""
+    ts = lstm.ts
+    norms = jax.device_get(update_lib.make_grad_norms(lstm.env, lstm.net, lstm.cfg)(ts))
+    targets = update_lib.targets_of(lstm.cfg, lstm.env)
+    batch = update_lib.collect(lstm.cfg, lstm.env, lstm.net, targets, ts)
+    w = lstm.cfg.train.loss_weights
+
+    def shared_norm(name):
+        term = lambda p: getattr(w, name) * update_lib.loss(lstm.cfg, lstm.net, targets, p, *batch.loss_args)[1][name]  # noqa: E731
+        g = jax.jit(jax.grad(term))(ts.params)["params"]
+        return float(np.sqrt(sum(np.sum(np.square(np.asarray(x))) for k in networks.SHARED_LAYERS
+                                 for x in jax.tree_util.tree_leaves(g[k]))))
+
+    for name in ("actor", "reward_prediction"):
+        np.testing.assert_allclose(norms[f"grad_norm/{name}"], shared_norm(name), rtol=1e-4)
+    per_term = [v for k, v in norms.items() if k != "grad_norm/total_shared"]
+    assert norms["grad_norm/total_shared"] <= sum(per_term) + 1e-6

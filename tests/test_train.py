@@ -192,3 +192,25 @@ def test_ctrl_c_saves_a_checkpoint(tmp_path, signal_name):
     assert max(steps) >= last and max(steps) > 0
     assert "checkpoint at update" in out
     assert os.path.exists(tmp_path / "config.yaml")
+
+
+def test_grad_norm_diagnostic_is_logged_and_changes_nothing(tmp_path, straight):
+    """`train.grad_norm_every=2`: every second log row has each loss term's gradient norm
+    on the shared conv layers; the run's parameters are those of the run without it."""
+    _, reference = straight
+    _, state, _ = train(_cfg("train.grad_norm_every=2"), tmp_path, max_updates=2 * N, progress=False,
+                        log=lambda *_: None)
+    for a, b in zip(_leaves(state), reference):
+        np.testing.assert_array_equal(a, b)
+    rows = read_jsonl(tmp_path / "metrics.jsonl")
+    terms = ("actor", "critic", "entropy", "off_policy_critic", "pixel_control", "reward_prediction", "depth",
+             "segmentation", "target_segmentation", "total_shared")
+    for r in rows:
+        logged = sorted(k[len("grad_norm/"):] for k in r if k.startswith("grad_norm/"))
+        if r["update"] % 2:
+            assert logged == []
+        else:
+            assert logged == sorted(terms)
+            assert all(np.isfinite(r[f"grad_norm/{t}"]) and r[f"grad_norm/{t}"] > 0 for t in terms)
+    header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert "grad_norm/reward_prediction" in header and len((tmp_path / "metrics.csv").read_text().splitlines()) == 2 * N + 1

@@ -45,6 +45,7 @@ from a2catvn_jax.env.scenes.spec import NUM_CLASSES
 REWARD_CLASSES = 3  # zero, positive, negative
 RP_FRAMES = 3  # frames seen by the reward-prediction head
 VN_HEADS = ("depth", "segmentation", "target_segmentation")
+SHARED_LAYERS = ("conv1", "conv2", "conv3", "conv4")  # the conv base every head's gradient reaches
 _PC_CHANNELS = 32
 
 

@@ -40,7 +40,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 from a2catvn_jax.agent import losses
 from a2catvn_jax.agent import replay as replay_lib
 from a2catvn_jax.agent.acting import actor_critic_sequence, initial_agent, rollout, unroll
-from a2catvn_jax.agent.networks import RP_FRAMES, VN_HEADS, Networks, Params, apply_flat
+from a2catvn_jax.agent.networks import RP_FRAMES, SHARED_LAYERS, VN_HEADS, Networks, Params, apply_flat
 from a2catvn_jax.agent.types import FrameTruth, TrainState, Transition
 from a2catvn_jax.config import Config
 from a2catvn_jax.env.world import SEGMENTATION_COLORS
@@ -210,6 +210,68 @@ def loss(cfg: Config, networks: Networks, targets: Targets, params: Params, traj
     return total, terms
 
 
+class Batch(NamedTuple):
+    """What one update learns from: the rollout it collected and the state after it."""
+
+    traj: Transition
+    truth: FrameTruth
+    carry0: object  # the core state the rollout started from
+    replay: Optional[replay_lib.Replay]  # with the rollout written
+    loss_key: jnp.ndarray
+    env_state: object
+    agent: object
+    stats: dict
+    key: jnp.ndarray  # the train state's next key
+    complexity: jnp.ndarray
+
+    @property
+    def loss_args(self):
+        """The arguments of `loss` after the parameters."""
+        return self.traj, self.truth, self.carry0, self.replay, self.loss_key
+
+
+def collect(cfg: Config, env, networks: Networks, targets: Targets, ts: TrainState) -> Batch:
+    """The rollout of the update that follows `ts`, written to the replay buffer (pure:
+    `ts` is not changed, so a diagnostic can collect the same batch the update will)."""
+    T, B = cfg.train.rollout_length, env.num_envs
+    key, k_roll, k_loss = jax.random.split(ts.key, 3)
+    tau = complexity(cfg, ts.update * (T * B))
+    env_state = env.set_complexity(ts.env_state, tau) if cfg.train.curriculum else ts.env_state
+    target_feats = networks.target_stream(ts.params, targets.rgb)
+    truth = lambda obs: frame_truth(cfg, obs.depth, obs.segmentation)  # noqa: E731
+    traj, truth_seq, env_state, agent, stats = rollout(env, networks, ts.params, target_feats, env_state, ts.agent,
+                                                       k_roll, T, truth)
+    replay = ts.replay if ts.replay is None else replay_lib.add(ts.replay, traj, ts.agent.carry)
+    return Batch(traj, truth_seq, ts.agent.carry, replay, k_loss, env_state, agent, stats, key, tau)
+
+
+def make_grad_norms(env, networks: Networks, cfg: Config) -> Callable:
+    """A jitted diagnostic `grad_norms(TrainState) -> metrics`: the norm of the gradient of
+    each weighted loss term (and of their sum) on the conv layers every head shares
+    (`networks.SHARED_LAYERS`), on the batch the next update will learn from. It changes
+    no state; the training loop calls it every `train.grad_norm_every` updates."""
+    targets = targets_of(cfg, env)
+    w = cfg.train.loss_weights
+
+    def grad_norms(ts: TrainState) -> dict:
+        batch = collect(cfg, env, networks, targets, ts)
+
+        def weighted_terms(params):
+            _, terms = loss(cfg, networks, targets, params, *batch.loss_args)
+            return {name: getattr(w, name) * value for name, value in terms.items()}
+
+        terms, vjp_fn = jax.vjp(weighted_terms, ts.params)
+        shared = lambda g: optax.tree.norm({k: g["params"][k] for k in SHARED_LAYERS})  # noqa: E731
+        out = {}
+        for name in terms:
+            (g,) = vjp_fn({m: jnp.ones_like(v) if m == name else jnp.zeros_like(v) for m, v in terms.items()})
+            out[f"grad_norm/{name}"] = shared(g)
+        out["grad_norm/total_shared"] = shared(vjp_fn(jax.tree_util.tree_map(jnp.ones_like, terms))[0])
+        return out
+
+    return jax.jit(grad_norms)
+
+
 class UpdateFns(NamedTuple):
     """`init(key, params=None) -> TrainState` (fresh parameters unless given) and the
     jitted `update(TrainState) -> (TrainState, metrics)` (its argument is donated)."""
@@ -226,7 +288,6 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
     schedule = learning_rate_schedule(cfg)
     replay_slots = max(1, tc.replay_size // T)
     targets = targets_of(cfg, env)
-    truth = lambda obs: frame_truth(cfg, obs.depth, obs.segmentation)  # noqa: E731
 
     def init(key, params: Optional[Params] = None) -> TrainState:
         k_param, k_env, k_train = jax.random.split(key, 3)
@@ -237,18 +298,9 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
         return TrainState(params, optimizer.init(params), env_state, agent, replay, k_train, jnp.zeros((), jnp.int32))
 
     def update(ts: TrainState):
-        key, k_roll, k_loss = jax.random.split(ts.key, 3)
-        carry0 = ts.agent.carry
-        tau = complexity(cfg, ts.update * (T * B))
-        env_state = env.set_complexity(ts.env_state, tau) if tc.curriculum else ts.env_state
-        target_feats = networks.target_stream(ts.params, targets.rgb)
-        traj, truth_seq, env_state, agent, stats = rollout(env, networks, ts.params, target_feats, env_state, ts.agent,
-                                                           k_roll, T, truth)
-        replay = ts.replay
-        if replay is not None:
-            replay = replay_lib.add(replay, traj, carry0)
+        batch = collect(cfg, env, networks, targets, ts)
         grad_fn = jax.value_and_grad(functools.partial(loss, cfg, networks, targets), has_aux=True)
-        (total, terms), grads = grad_fn(ts.params, traj, truth_seq, carry0, replay, k_loss)
+        (total, terms), grads = grad_fn(ts.params, *batch.loss_args)
         updates, opt_state = optimizer.update(grads, ts.opt_state, ts.params)
         params = optax.apply_updates(ts.params, updates)
         metrics = {f"loss/{k}": v for k, v in terms.items()}
@@ -256,10 +308,10 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
             "loss/total": total,
             "grad_norm": optax.tree.norm(grads),
             "learning_rate": schedule(ts.update),
-            "complexity": tau,
-            **stats,
+            "complexity": batch.complexity,
+            **batch.stats,
         })
-        return TrainState(params, opt_state, env_state, agent, replay, key, ts.update + 1), metrics
+        return TrainState(params, opt_state, batch.env_state, batch.agent, batch.replay, batch.key, ts.update + 1), metrics
 
     return UpdateFns(jax.jit(init), jax.jit(update, donate_argnums=0))
 

@@ -30,7 +30,7 @@ from a2catvn_jax.errors import UserError
 CONFIG_FILE = "config.yaml"
 CHECKPOINT_DIR = "checkpoints"
 # Keys that may differ between the run that wrote a checkpoint and the one resuming it.
-BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_checkpoints")
+BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_checkpoints", "train.grad_norm_every")
 
 
 # The layout of the saved TrainState. 1: observations, info and the replay's rollouts as

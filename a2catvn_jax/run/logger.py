@@ -70,6 +70,14 @@ class MetricsWriter:
             self._csv_fields = list(row)
             with open(self.csv_path, "w", newline="", encoding="utf-8") as fh:
                 csv.writer(fh).writerow(self._csv_fields)
+        elif any(k not in self._csv_fields for k in row):  # a column appears (e.g. a periodic diagnostic)
+            with open(self.csv_path, newline="", encoding="utf-8") as fh:
+                old = list(csv.DictReader(fh))
+            self._csv_fields += [k for k in row if k not in self._csv_fields]
+            with open(self.csv_path, "w", newline="", encoding="utf-8") as fh:
+                writer = csv.DictWriter(fh, self._csv_fields, restval="")
+                writer.writeheader()
+                writer.writerows(old)
         with open(self.csv_path, "a", newline="", encoding="utf-8") as fh:
             csv.writer(fh).writerow([row.get(k, "") for k in self._csv_fields])
         if self.tb is not None:

@@ -21,7 +21,7 @@ import jax
 from tqdm import tqdm
 
 from a2catvn_jax.agent.networks import make_networks
-from a2catvn_jax.agent.update import frames_per_update, make_update, total_updates
+from a2catvn_jax.agent.update import frames_per_update, make_grad_norms, make_update, total_updates
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError
@@ -64,7 +64,9 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         )
     t_build = time.perf_counter()
     env = NavEnv(cfg.env)
-    init, update_fn = make_update(env, make_networks(cfg, env.num_actions), cfg)
+    networks = make_networks(cfg, env.num_actions)
+    init, update_fn = make_update(env, networks, cfg)
+    grad_norms = make_grad_norms(env, networks, cfg) if cfg.train.grad_norm_every else None
     per_update = frames_per_update(cfg)
     log(f"built {env.num_scenes} scene(s), {env.num_actions} actions, "
         f"{env.num_envs} environments in {time.perf_counter() - t_build:.1f} s")
@@ -114,6 +116,8 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
                 now, frames = time.perf_counter(), update * per_update
                 row = {"update": update, "frames": frames, "fps": (frames - frames_log) / max(now - t_log, 1e-9),
                        **interval.row()}
+                if grad_norms is not None and update % cfg.train.grad_norm_every == 0:
+                    row.update({k: float(v) for k, v in jax.device_get(grad_norms(state)).items()})
                 writer.write(row)
                 interval.reset()
                 t_log, frames_log = now, frames
