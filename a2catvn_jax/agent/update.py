@@ -233,14 +233,13 @@ class Batch(NamedTuple):
 def collect(cfg: Config, env, networks: Networks, targets: Targets, ts: TrainState) -> Batch:
     """The rollout of the update that follows `ts`, written to the replay buffer (pure:
     `ts` is not changed, so a diagnostic can collect the same batch the update will)."""
-    T, B = cfg.train.rollout_length, env.num_envs
     key, k_roll, k_loss = jax.random.split(ts.key, 3)
-    tau = complexity(cfg, ts.update * (T * B))
+    tau = complexity(cfg, ts.update * frames_per_update(cfg))
     env_state = env.set_complexity(ts.env_state, tau) if cfg.train.curriculum else ts.env_state
     target_feats = networks.target_stream(ts.params, targets.rgb)
     truth = lambda obs: frame_truth(cfg, obs.depth, obs.segmentation)  # noqa: E731
     traj, truth_seq, env_state, agent, stats = rollout(env, networks, ts.params, target_feats, env_state, ts.agent,
-                                                       k_roll, T, truth)
+                                                       k_roll, cfg.train.rollout_length, truth)
     replay = ts.replay if ts.replay is None else replay_lib.add(ts.replay, traj, ts.agent.carry)
     return Batch(traj, truth_seq, ts.agent.carry, replay, k_loss, env_state, agent, stats, key, tau)
 

@@ -23,7 +23,7 @@ import numpy as np
 from a2catvn_jax.agent.acting import POLICIES, act_as, initial_agent, observe
 from a2catvn_jax.agent.networks import Networks
 from a2catvn_jax.env import NavEnv
-from a2catvn_jax.run.restore import HOUSES, Restored, locate, make_env, make_envs
+from a2catvn_jax.run.restore import HOUSES, Restored, check_houses, locate, make_env, make_envs
 from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
 
 MAX_CHUNK = 128  # environment steps per compiled call
@@ -111,8 +111,7 @@ def evaluate(
     `VideoError`.
     """
     _check(episodes, policy, video, video_episodes)
-    if houses not in HOUSES:
-        raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
+    check_houses(houses)
     run = locate(workdir, step, overrides)
     t0 = time.perf_counter()
     env = make_env(run.cfg.env, houses)

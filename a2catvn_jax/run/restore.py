@@ -61,12 +61,18 @@ def eval_config(run_cfg, overrides: Sequence[str] = ()):
     return cfg
 
 
+def check_houses(*houses: str) -> None:
+    """`ValueError` unless every name is one of `HOUSES`."""
+    for h in houses:
+        if h not in HOUSES:
+            raise ValueError(f"houses must be one of {HOUSES}, got {h!r}")
+
+
 def make_env(env_cfg, houses: str = "train", scenes: Optional[list] = None) -> NavEnv:
     """A `NavEnv` in the run's training houses, in held-out houses generated with offset
     seeds, or in the training houses with new goals ("new-targets"). `scenes`: the
     training houses when already built (train and new-targets use them)."""
-    if houses not in HOUSES:
-        raise ValueError(f"houses must be one of {HOUSES}, got {houses!r}")
+    check_houses(houses)
     if houses == "held-out" and env_cfg.scene.kind == "mjcf":
         raise ValueError("held-out houses need generated scenes; env.scene.kind is 'mjcf' (one fixed file)")
     if houses == "held-out":
@@ -80,9 +86,7 @@ def make_env(env_cfg, houses: str = "train", scenes: Optional[list] = None) -> N
 def make_envs(env_cfg, houses=HOUSES) -> dict:
     """houses -> `NavEnv` of each set, their worlds padded to common shapes
     (`world.share_shapes`) so that they share compiled functions."""
-    for h in houses:
-        if h not in HOUSES:
-            raise ValueError(f"houses must be one of {HOUSES}, got {h!r}")
+    check_houses(*houses)
     envs, scenes = {}, None
     for h in houses:
         envs[h] = make_env(env_cfg, h, scenes)
