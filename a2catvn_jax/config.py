@@ -225,8 +225,11 @@ class EnvConfig(_Section):
     goal: Literal["image", "room", "object"] = "image"
     goals_per_scene: Count = 8
     max_episode_steps: Count = 900
-    success_distance: Positive = 0.5  # metres (image and room goals)
-    object_distance: Positive = 1.0  # metres (object goals)
+    success_distance: Positive = 0.5  # metres (image goals)
+    success_heading_deg: Annotated[float, Strict(), Field(gt=0, le=180)] = 45.0  # image goals: heading within this of the target's
+    object_distance: Positive = 1.5  # metres (object goals)
+    view_fraction: Annotated[float, Strict(), Field(ge=0, lt=1)] = 0.045  # room/object goals: image share showing the goal; 0: not needed
+    view_steps: Count = 2  # ... in this many observations in a row
     agent_radius: Annotated[float, Strict(), Field(gt=0, lt=1)] = 0.2  # metres
     camera_height: Positive = 1.0  # metres
     grid_resolution: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.1  # occupancy grid cell size, metres

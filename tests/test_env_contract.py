@@ -90,7 +90,7 @@ def test_padding_changes_nothing(envs, stepped):
 
 
 def test_time_outs_are_apart_from_terminal_states():
-    cfg = load_config(None, CFG + ["env.max_episode_steps=3", "env.success_distance=3.0"]).env
+    cfg = load_config(None, CFG + ["env.max_episode_steps=3", "env.success_distance=3.0", "env.success_heading_deg=180"]).env
     env = NavEnv(cfg)
     state = jax.jit(env.reset)(jax.random.PRNGKey(1))
     assert isinstance(state.obs, Observation) and isinstance(state.info, Info)

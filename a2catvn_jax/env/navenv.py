@@ -12,6 +12,18 @@ The world (`WorldArrays`: geometry, occupancy grids, goals, target images) is da
 when omitted), so one compiled step serves every world of the same shapes: training,
 held-out and new-target houses built with `World(..., like=...)`.
 
+Success (reward 1, `terminated`) depends on the goal kind (`env.goal`):
+- image: the agent stands within `success_distance` of where the target image was taken
+  and faces within `success_heading_deg` of its heading (it sees what the image shows);
+- room: the agent is inside a room of the target's type, and
+- object: within `object_distance` of the pictured object, and for both
+  the goal is in sight: pixels of what shows it (a room type's characteristic objects,
+  `spec.ROOM_TARGET_CLASSES`; the object itself) cover at least `view_fraction` of the
+  observation in `view_steps` observations in a row. The observation is rendered after
+  the move, so this is known one step late: the step after such a streak ends the
+  episode with reward 1 whatever its action (the action is not carried out). With
+  `view_fraction` 0 only the position counts and success comes with the move.
+
 Actions (paper): forward 0.5 m, backward 0.2 m, left/right 0.35 m sideways, rotate
 +-30 deg, tilt camera +-30 deg ("full"); the same without tilt ("no_tilt"); or
 forward/backward 0.33 m and rotate +-90 deg without noise ("grid"). After each action
@@ -90,7 +102,9 @@ class Info:
     scene, goal [B] int32; pose [B, 4] (x, y, yaw, tilt); target_pose [B, 4] where the
     target image was taken; start_distance [B] geodesic start-to-goal distance (m);
     step [B] int32 steps taken; path_length [B] metres travelled; episode_return [B];
-    complexity [B] curriculum tau of the next episodes; key [B, 2] PRNG keys.
+    complexity [B] curriculum tau of the next episodes; key [B, 2] PRNG keys;
+    view_streak [B] int32 observations in a row, up to the current one, that showed the
+    goal from inside its region (goals that must be seen; 0 otherwise).
     """
 
     scene: jnp.ndarray
@@ -103,6 +117,7 @@ class Info:
     episode_return: jnp.ndarray
     complexity: jnp.ndarray
     key: jnp.ndarray
+    view_streak: jnp.ndarray
 
 
 @struct.dataclass
@@ -149,6 +164,7 @@ class NavEnv:
         moves[:, 2:] = np.deg2rad(moves[:, 2:])
         self._moves = moves
         self._grid = cfg.action_set == "grid"
+        self._seen = cfg.goal in ("room", "object") and cfg.view_fraction > 0  # success needs the goal in sight
         self._spec = self.world.spec
         self._colors = jnp.asarray(SEGMENTATION_COLORS)
 
@@ -157,6 +173,11 @@ class NavEnv:
     @property
     def num_scenes(self) -> int:
         return len(self.world.scenes)
+
+    @property
+    def moves(self):
+        """[A, 4] float32 per action: forward and left (metres), rotation and tilt (radians)."""
+        return self._moves
 
     @property
     def num_targets(self) -> int:
@@ -175,6 +196,7 @@ class NavEnv:
         keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, scene, tau)
         info = self._episode_info(w, start, scene, tau, keys)
         frame = self._render(w, scene, info.pose)
+        info = self._count_views(w, info, frame, jnp.zeros((B,), bool))
         zeros = jnp.zeros((B,), jnp.float32)
         metrics = self._metrics(zeros > 1, zeros > 1, info, zeros, frame.fallback)
         return State(self._obs(w, frame, info), zeros, zeros > 1, zeros > 1, metrics, info)
@@ -187,7 +209,12 @@ class NavEnv:
         keys, noise_key = jax.vmap(jax.random.split, out_axes=1)(info.key)
         pose, moved = jax.vmap(self._move, in_axes=(None, 0, 0, 0, 0))(
             w, info.scene, info.pose, jnp.asarray(action, jnp.int32), noise_key)
-        success = jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose)
+        if self._seen:  # the streak up to the current observation decides; the move is not made
+            success = info.view_streak >= self.cfg.view_steps
+            pose = _where(success, info.pose, pose)
+            moved = jnp.where(success, 0.0, moved)
+        else:
+            success = jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose)
         step = info.step + 1
         truncated = (step >= self.cfg.max_episode_steps) & ~success
         done = success | truncated
@@ -200,6 +227,7 @@ class NavEnv:
         ended = ended.replace(key=keys)
         new_info = jax.tree_util.tree_map(lambda a, b: _where(done, a, b), fresh, ended)
         frame = self._render(w, new_info.scene, new_info.pose)
+        new_info = self._count_views(w, new_info, frame, ~done)
         metrics = self._metrics(success, truncated, ended, reward, frame.fallback)
         return State(self._obs(w, frame, new_info), reward, success, truncated, metrics, new_info)
 
@@ -247,6 +275,11 @@ class NavEnv:
                                                                           complexity)
         return start
 
+    def preview(self, scene, pose, action, world: Optional[WorldArrays] = None):
+        """The pose [4] that `action` would lead to from `pose` [4] in `scene` without motion
+        noise (one agent; vmap for more)."""
+        return self._move(self._world(world), scene, pose, action, None)[0]
+
     def segmentation_rgb(self, classes):
         """The paper's encoding of class ids as colours evenly spread in hue: [..., 3] uint8."""
         return self._colors[classes]
@@ -275,9 +308,33 @@ class NavEnv:
             target_index=self.target_index(s, g),
         )
 
-    def _at_goal(self, w: WorldArrays, scene, goal, pose):
+    def _in_region(self, w: WorldArrays, scene, goal, pose):
         i, j = rects.cell_of(pose[:2], w.grid_origin[scene], self.cfg.grid_resolution, w.free.shape[1:])
         return w.goal_success[scene, goal, i, j]
+
+    def _at_goal(self, w: WorldArrays, scene, goal, pose):
+        """Success by position (and for image goals heading) alone."""
+        ok = self._in_region(w, scene, goal, pose)
+        if self.cfg.goal == "image" and self.cfg.success_heading_deg < 180:
+            off = _wrap(pose[2] - w.target_pose[scene, goal, 2])
+            ok &= jnp.abs(off) <= jnp.deg2rad(self.cfg.success_heading_deg)
+        return ok
+
+    def in_view(self, w: WorldArrays, scene, goal, frame: render.Frame):
+        """[N] bool: frames [N] (of agents in scenes [N] pursuing goals [N]) in which what
+        shows the goal covers at least `view_fraction` of the image."""
+        shows = w.goal_classes[scene[:, None, None], goal[:, None, None], frame.cls]
+        shows |= w.goal_geoms[scene[:, None, None], goal[:, None, None], frame.geom + 1]
+        return shows.mean((1, 2)) >= self.cfg.view_fraction
+
+    def _count_views(self, w: WorldArrays, info: Info, frame: render.Frame, keep):
+        """`info` with the view streak of the frames just rendered (continued where `keep`)."""
+        if not self._seen:
+            return info
+        region = jax.vmap(self._in_region, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, info.pose)
+        seen = region & self.in_view(w, info.scene, info.goal, frame)
+        streak = jnp.where(seen, jnp.where(keep, info.view_streak, 0) + 1, 0)
+        return info.replace(view_streak=streak.astype(jnp.int32))
 
     def _sample_episode(self, w: WorldArrays, key, scene, tau):
         """(next key, (goal, pose, start distance)) of a new episode in `scene`."""
@@ -316,6 +373,7 @@ class NavEnv:
             episode_return=zeros,
             complexity=tau,
             key=keys,
+            view_streak=jnp.zeros_like(scene),
         )
 
     def _sweep(self, w: WorldArrays, scene, p0, p1):
@@ -335,13 +393,14 @@ class NavEnv:
         return jnp.where(jnp.any(hits), stop, 1.0)
 
     def _move(self, w: WorldArrays, scene, pose, action, key):
-        """New pose after `action` and the distance actually travelled."""
+        """New pose after `action` and the distance actually travelled (no motion noise
+        when `key` is None)."""
         fwd, left, rot, tilt = (jnp.asarray(self._moves)[action, i] for i in range(4))
         x, y, yaw, cam_tilt = pose[0], pose[1], pose[2], pose[3]
         p0 = jnp.stack([x, y])
         step = jnp.stack([fwd * jnp.cos(yaw) - left * jnp.sin(yaw), fwd * jnp.sin(yaw) + left * jnp.cos(yaw)])
         yaw = yaw + rot
-        if not self._grid:
+        if not self._grid and key is not None:
             kp, kh = jax.random.split(key)
             step = step + self.cfg.position_noise * jax.random.normal(kp, (2,))
             yaw = yaw + jnp.deg2rad(self.cfg.heading_noise_deg) * jax.random.normal(kh)
@@ -380,6 +439,11 @@ def _uniform_index(key, mask):
     count = mask.sum()
     k = jnp.minimum(jnp.floor(jax.random.uniform(key) * count), count - 1)
     return jnp.argmax(jnp.cumsum(mask) > k)
+
+
+def _wrap(angle):
+    """An angle in radians brought into [-pi, pi]."""
+    return jnp.arctan2(jnp.sin(angle), jnp.cos(angle))
 
 
 def _where(mask, a, b):

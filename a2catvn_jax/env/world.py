@@ -22,10 +22,12 @@ from a2catvn_jax.env import navgrid, rects, render
 from a2catvn_jax.env.scenes import generate, mjcf
 from a2catvn_jax.env.scenes.errors import SceneError
 from a2catvn_jax.env.scenes.mjcf import geom_aabb
-from a2catvn_jax.env.scenes.spec import STRUCTURAL_CLASSES, Scene, class_colors
+from a2catvn_jax.env.scenes.spec import CLASS_ID, NUM_CLASSES, ROOM_TARGET_CLASSES, STRUCTURAL_CLASSES, Scene, class_colors
 
 GOAL_KINDS = ("image", "room", "object")
 BODY_MARGIN = 0.1  # the agent's body reaches this far above its camera
+LOOK_RANGE = 1.5  # metres: the shortest-path oracle looks at a room goal's objects from this close
+PIECE_GAP = 0.05  # metres: geoms of one class this close to an object goal's geom are parts of the same object
 
 
 @struct.dataclass
@@ -40,6 +42,12 @@ class WorldArrays:
     target_pose [S, T, 4] (x, y, yaw, tilt) of the target image's camera and
     target_scene [S, T] the scene it was taken in; target_rgb [S, T, h, w, 3],
     target_depth [S, T, h, w], target_seg [S, T, h, w] (class ids).
+    goal_classes [S, T, C] and goal_geoms [S, T, G + 1]: the semantic classes and the
+    geoms (index geom id + 1; 0: nothing hit) whose pixels show the goal (the view
+    criterion of room and object goals). oracle_dist [S, T, H, W]: geodesic distance
+    to where the shortest-path oracle heads (the goal region, or for goals that must
+    be seen the part of it within sight of what shows them); oracle_yaw [S, T, H, W]:
+    the heading the oracle turns to there.
     """
 
     geometry: geometry_lib.Geometry
@@ -55,6 +63,10 @@ class WorldArrays:
     target_rgb: jnp.ndarray
     target_depth: jnp.ndarray
     target_seg: jnp.ndarray
+    goal_classes: jnp.ndarray
+    goal_geoms: jnp.ndarray
+    oracle_dist: jnp.ndarray
+    oracle_yaw: jnp.ndarray
 
     def fits(self, other: "WorldArrays") -> bool:
         """Whether every array has the rank of `other`'s and no axis longer than it."""
@@ -78,7 +90,7 @@ class WorldArrays:
 
 # Fill values of padded entries (by field name; the rest are 0 / False): geoms with id -1
 # are never hit, obstacles lie far away, padded cells are unreachable.
-_PAD_FILL = {"gid": -1, "obstacles": 1e6, "goal_dist": np.inf}
+_PAD_FILL = {"gid": -1, "obstacles": 1e6, "goal_dist": np.inf, "oracle_dist": np.inf}
 
 
 @dataclasses.dataclass
@@ -87,6 +99,9 @@ class Goal:
     pose: np.ndarray  # (x, y, yaw, tilt) of the target image camera
     scene: int  # scene the target image is taken in
     label: str
+    classes: tuple[str, ...] = ()  # semantic classes whose pixels show the goal (room goals)
+    geoms: tuple[str, ...] = ()  # names of the geoms whose pixels show the goal (object goals)
+    look: Optional[np.ndarray] = None  # footprints [K, 4] of what shows the goal; None: face `pose`'s heading
 
 
 def make_scenes(cfg: EnvConfig, seed_offset: int = 0) -> list[Scene]:
@@ -146,7 +161,13 @@ class World:
             elif cfg.goal == "room":
                 if not scene.rooms:
                     raise SceneError(f"scene {scene.name!r} has no rooms: room-type goals need houses")
-                rtype = scene.rooms[rng.integers(len(scene.rooms))].type
+                candidates = scene.rooms
+                if cfg.view_fraction > 0:  # only rooms with something that shows their type
+                    candidates = [r for r in scene.rooms if _room_pieces(scene, r)]
+                    if not candidates:
+                        raise SceneError(f"scene {scene.name!r} has no room with objects that show its type "
+                                         f"(room-type goals with env.view_fraction > 0)")
+                rtype = candidates[rng.integers(len(candidates))].type
                 rooms = [i for i, r in enumerate(scene.rooms) if r.type == rtype]
                 success = np.isin(grid.room, rooms)
                 # The target image is taken in another room of that type: in another
@@ -162,7 +183,9 @@ class World:
                 else:
                     j, i = k, rooms[rng.integers(len(rooms))]
                 pose = self._random_free_pose(j, rng, self.grids[j].room == i)
-                goals.append(Goal(success, pose, j, rtype))
+                look = [_footprint(g) for r in rooms for g in _room_pieces(scene, scene.rooms[r])]
+                goals.append(Goal(success, pose, j, rtype, classes=ROOM_TARGET_CLASSES.get(rtype, ()),
+                                  look=np.array(look).reshape(-1, 4)))
             else:
                 goals.append(self._object_goal(k, rng))
         return goals
@@ -192,7 +215,9 @@ class World:
                 if name == obj.name and success.any() and (success & grid.free).any():
                     yaw = np.arctan2(vec[1], vec[0])
                     tilt = np.clip(np.arctan2(vec[2], np.hypot(vec[0], vec[1])), -0.5, 0.5)
-                    return Goal(success, np.array([eye[0], eye[1], yaw, tilt]), k, obj.name)
+                    parts = [g for g in objs if g.cls == obj.cls and _gap(geom_aabb(g), (lo, hi)) <= PIECE_GAP]
+                    return Goal(success, np.array([eye[0], eye[1], yaw, tilt]), k, obj.name,
+                                geoms=tuple(g.name for g in parts), look=np.array([_footprint(g) for g in parts]))
         raise SceneError(f"scene {scene.name!r}: found no visible object for an object goal")
 
     # -- arrays ---------------------------------------------------------------------
@@ -211,6 +236,11 @@ class World:
         goal_dist = np.full((S, T, H, W), np.inf, np.float32)
         goal_success = np.zeros((S, T, H, W), bool)
         goal_min = np.zeros((S, T), np.float32)
+        oracle_dist = np.full((S, T, H, W), np.inf, np.float32)
+        oracle_yaw = np.zeros((S, T, H, W), np.float32)
+        G = max(m.ngeom for m in self.models)
+        goal_classes = np.zeros((S, T, NUM_CLASSES), bool)
+        goal_geoms = np.zeros((S, T, G + 1), bool)
         for k, (grid, goals) in enumerate(zip(self.grids, self.goals)):
             for t, goal in enumerate(goals):
                 d = navgrid.geodesic(grid, goal.success)
@@ -218,6 +248,12 @@ class World:
                 goal_success[k, t] = pad(goal.success & grid.free, False)
                 outside = np.isfinite(d) & ~goal.success & grid.free
                 goal_min[k, t] = d[outside].min() if outside.any() else 0.0
+                goal_classes[k, t, [CLASS_ID[c] for c in goal.classes]] = True
+                for name in goal.geoms:
+                    goal_geoms[k, t, mujoco.mj_name2id(self.models[k], mujoco.mjtObj.mjOBJ_GEOM, name) + 1] = True
+                region, yaw = self._oracle_target(grid, goal, d)
+                oracle_dist[k, t] = pad(region.astype(np.float32), np.inf)
+                oracle_yaw[k, t] = pad(yaw.astype(np.float32), 0.0)
         diameter = np.array([navgrid.diameter(g) for g in self.grids], np.float32)
         n_obs = max(max(len(g.obstacles) for g in self.grids), 1)
         obstacles = np.tile(np.array([1e6, 1e6, 1e6 + 1, 1e6 + 1], np.float32), (S, n_obs, 1))
@@ -241,7 +277,45 @@ class World:
             target_rgb=flat.rgb.reshape(S, T, h, w, 3),
             target_depth=flat.depth.reshape(S, T, h, w),
             target_seg=flat.cls.astype(jnp.uint8).reshape(S, T, h, w),
+            goal_classes=jnp.asarray(goal_classes),
+            goal_geoms=jnp.asarray(goal_geoms),
+            oracle_dist=jnp.asarray(oracle_dist),
+            oracle_yaw=jnp.asarray(oracle_yaw),
         )
+
+    def _oracle_target(self, grid: navgrid.NavGrid, goal: Goal, goal_dist: np.ndarray):
+        """(geodesic distance [H, W] to where the oracle heads, heading [H, W] it turns to
+        there). Goals that must be seen: the cells of the goal region within `LOOK_RANGE`
+        of what shows the goal (the region itself when no such cell is free), facing the
+        nearest of those objects; other goals: the goal region, facing the target
+        image's heading."""
+        seen = self.cfg.view_fraction > 0 and self.cfg.goal in ("room", "object")
+        if not seen or goal.look is None or len(goal.look) == 0:
+            return goal_dist, np.full(grid.shape, goal.pose[2])
+        centres = grid.centres()
+        dist = rects.distance(centres[..., None, :], goal.look)  # [H, W, K]
+        region = goal.success & grid.free & (dist.min(-1) <= LOOK_RANGE)
+        d = navgrid.geodesic(grid, region) if region.any() else goal_dist
+        nearest = goal.look[dist.argmin(-1)]  # [H, W, 4]
+        to = (nearest[..., :2] + nearest[..., 2:]) / 2 - centres
+        return d, np.arctan2(to[..., 1], to[..., 0])
+
+
+def _footprint(g) -> np.ndarray:
+    lo, hi = geom_aabb(g)
+    return np.array([lo[0], lo[1], hi[0], hi[1]])
+
+
+def _gap(a, b) -> float:
+    """The largest per-axis gap between two AABBs (lo, hi): <= 0 where they overlap."""
+    return float(np.max(np.maximum(a[0] - b[1], b[0] - a[1])))
+
+
+def _room_pieces(scene: Scene, room) -> list:
+    """The geoms that show a room's type (`ROOM_TARGET_CLASSES`) whose centre lies in it."""
+    classes = ROOM_TARGET_CLASSES.get(room.type, ())
+    x0, y0, x1, y1 = room.rect
+    return [g for g in scene.geoms if g.cls in classes and x0 <= g.pos[0] < x1 and y0 <= g.pos[1] < y1]
 
 
 def share_shapes(worlds: list[World]) -> None:

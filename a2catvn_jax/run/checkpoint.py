@@ -13,6 +13,7 @@ written under a different configuration (the differing keys are listed).
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import sys
@@ -23,6 +24,7 @@ from typing import Optional
 import jax
 import numpy as np
 import orbax.checkpoint as ocp
+import yaml
 
 from a2catvn_jax.config import Config, ConfigError, from_dict, load_config, save_config, to_dict
 from a2catvn_jax.errors import UserError
@@ -34,8 +36,16 @@ BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_che
 
 
 # The layout of the saved TrainState. 1: observations, info and the replay's rollouts as
-# dicts with one `done` flag; 2: typed, with `terminated` and `truncated` apart.
-FORMAT = 2
+# dicts with one `done` flag; 2: typed, with `terminated` and `truncated` apart; 3: the
+# environment's info counts the observations in a row that showed the goal.
+FORMAT = 3
+
+# Keys that did not exist when some runs were written, with the value that reproduces
+# how those runs behaved. A run's saved configuration that lacks one of them takes it.
+LEGACY_VALUES = {
+    "env.success_heading_deg": 180.0,  # image goals: position only
+    "env.view_fraction": 0.0,  # room and object goals: position only
+}
 
 
 class CheckpointError(UserError, RuntimeError):
@@ -62,8 +72,9 @@ def read_run_config(workdir: str | os.PathLike) -> Config:
     if not path.exists():
         raise CheckpointError(f"{workdir}: no {CONFIG_FILE}; is this a training work directory?")
     try:
-        return load_config(path)
-    except ConfigError as e:
+        text = yaml.safe_load(path.read_text()) or {}
+        return load_config(path, [f"{k}={v}" for k, v in LEGACY_VALUES.items() if not _has_key(text, k)])
+    except (ConfigError, yaml.YAMLError) as e:
         raise CheckpointError(f"{path}: cannot be read as a configuration: {e}") from None
 
 
@@ -114,7 +125,7 @@ class Checkpointer:
         else:  # an earlier layout: read it as it was written, bring it up to date, reshape it
             raw = self._restore_state(path, step, ocp.args.StandardRestore())
             for upgrade in UPGRADES[written - 1 : FORMAT - 1]:
-                raw = upgrade(raw, from_dict(Config, meta["config"]))
+                raw = upgrade(raw, from_dict(Config, with_legacy_values(meta["config"])))
             state = _shaped_like(path, abstract, raw)
         self._check_shapes(path, abstract, state)
         return state, meta
@@ -150,7 +161,7 @@ class Checkpointer:
             raise CheckpointError(f"{path}: cannot read the checkpoint record ({type(e).__name__}: {_short(str(e))})") from None
         if cfg is not None:
             try:
-                saved = from_dict(Config, meta["config"])
+                saved = from_dict(Config, with_legacy_values(meta["config"]))
             except (ConfigError, KeyError, TypeError) as e:
                 raise CheckpointError(f"{path}: its configuration is invalid: {e}") from None
             diff = config_differences(saved, cfg)
@@ -206,7 +217,36 @@ def _upgrade_to_2(state: dict, cfg: Config) -> dict:
     return state
 
 
-UPGRADES = (_upgrade_to_2,)  # UPGRADES[k] brings format k + 1 to k + 2
+def _upgrade_to_3(state: dict, cfg: Config) -> dict:
+    """Format 2 -> 3: the environment's info gains the view streak (zero: the runs that
+    wrote format 2 had no view criterion)."""
+    info = state["env_state"]["info"]
+    info["view_streak"] = np.zeros_like(np.asarray(info["step"]))
+    return state
+
+
+UPGRADES = (_upgrade_to_2, _upgrade_to_3)  # UPGRADES[k] brings format k + 1 to k + 2
+
+
+def _has_key(tree, dotted: str) -> bool:
+    for part in dotted.split("."):
+        if not isinstance(tree, dict) or part not in tree:
+            return False
+        tree = tree[part]
+    return True
+
+
+def with_legacy_values(config: dict) -> dict:
+    """A saved configuration (nested dict) with the keys it lacks from `LEGACY_VALUES`."""
+    config = copy.deepcopy(config)
+    for dotted, value in LEGACY_VALUES.items():
+        if not _has_key(config, dotted):
+            *parents, name = dotted.split(".")
+            node = config
+            for p in parents:
+                node = node.setdefault(p, {})
+            node[name] = value
+    return config
 
 
 def _shaped_like(path, abstract, raw):

@@ -58,6 +58,17 @@ ROOM_TYPES: tuple[str, ...] = (
     "maze",
 )
 ROOM_TYPE_ID = {name: i for i, name in enumerate(ROOM_TYPES)}
+# What shows a room's type: the classes of the pieces every room of that type is given
+# (hallways have none, so they are never room-type goals that must be seen). A room-type
+# goal with a view criterion is reached in a room of its type with these in sight.
+ROOM_TARGET_CLASSES: dict[str, tuple[str, ...]] = {
+    "bedroom": ("bed", "wardrobe"),
+    "kitchen": ("counter", "refrigerator", "stove"),
+    "bathroom": ("toilet", "sink", "bathtub"),
+    "living_room": ("sofa", "tv"),
+    "dining_room": ("table", "chair"),
+    "office": ("desk", "shelf"),
+}
 
 GEOM_TYPES = ("box", "sphere", "capsule", "ellipsoid")
 

@@ -1,0 +1,75 @@
+"""The shortest-path oracle: a baseline that knows the map and the goal.
+
+Each step it looks one move ahead on the occupancy grid. Outside the place it heads for
+(`WorldArrays.oracle_dist`: the goal region, or for goals that must be seen the part of
+it within sight of what shows them) it takes the move whose noise-free end point lies
+geodesically closest to that place, counting the metres walked beyond the progress made
+(so that it arrives with the shortest move that does); a turn is scored by the move
+forward that would follow it, and moves win ties, so it turns only to face a better way. There it turns
+to the heading it should face (`oracle_yaw`: the target image's, or towards the object
+it should see) and then steps forward, which keeps that object in sight. Where no move
+brings it closer it acts at random, which frees it from the rare corner that a move of
+fixed length cannot leave. It never tilts the camera.
+
+Its success rate is the ceiling of a task and its SPL checks the SPL computation: on
+image goals it follows the geodesic up to the motion noise and the moves' fixed length.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+
+from a2catvn_jax.env import rects
+from a2catvn_jax.env.navenv import NavEnv, State
+from a2catvn_jax.env.world import WorldArrays
+
+_TURN_PENALTY = 1e-3  # metres: a turn must beat the best move by more than this
+
+
+def oracle_actions(env: NavEnv, state: State, key, world: Optional[WorldArrays] = None):
+    """The oracle's actions [B] int32 for the agents of `state` in `world` (default: the
+    environment's own)."""
+    w = env.world.arrays if world is None else world
+    info = state.info
+    keys = jax.random.split(key, info.scene.shape[0])
+    return jax.vmap(_act, in_axes=(None, None, 0, 0, 0, 0))(env, w, info.scene, info.goal, info.pose, keys)
+
+
+def _act(env: NavEnv, w: WorldArrays, scene, goal, pose, key):
+    moves = jnp.asarray(env.moves)  # [A, 4]: forward, left, rotate, tilt
+    res = env.cfg.grid_resolution
+    field = w.oracle_dist[scene, goal]
+
+    def dist_at(p):
+        i, j = rects.cell_of(p[:2], w.grid_origin[scene], res, field.shape)
+        return field[i, j]
+
+    def yaw_at(p):
+        i, j = rects.cell_of(p[:2], w.grid_origin[scene], res, field.shape)
+        return w.oracle_yaw[scene, goal, i, j]
+
+    A = moves.shape[0]
+    forward = jnp.argmax(moves[:, 0])
+    ends = jax.vmap(lambda a: env.preview(scene, pose, a, w))(jnp.arange(A))
+    translates = (moves[:, 0] != 0) | (moves[:, 1] != 0)
+    turns = moves[:, 2] != 0
+    ahead = jax.vmap(lambda p: dist_at(env.preview(scene, p, forward, w)))(ends)
+    # Where each action leads (a turn: the move forward after it) and the metres walked.
+    reach = jnp.where(translates, jax.vmap(dist_at)(ends), jnp.where(turns, ahead, jnp.inf))
+    walk = jnp.where(translates, jnp.hypot(moves[:, 0], moves[:, 1]), moves[forward, 0])
+    # Distance left plus metres walked beyond the progress made: near the goal the
+    # shortest move that arrives beats a longer one.
+    score = 2 * reach + walk + jnp.where(turns, _TURN_PENALTY, 0.0)
+    best = jnp.argmin(score)
+    here = dist_at(pose)
+    stuck = ~(reach.min() < here)
+    travel = jnp.where(stuck, jax.random.randint(key, (), 0, A), best)
+    # Where it should be: face the right way, then step forward.
+    off = jnp.arctan2(jnp.sin(yaw_at(pose) - pose[2]), jnp.cos(yaw_at(pose) - pose[2]))
+    half_turn = jnp.min(jnp.where(turns, jnp.abs(moves[:, 2]), jnp.inf)) / 2
+    turn = jnp.argmax(turns & (jnp.sign(moves[:, 2]) == jnp.sign(off)))
+    arrived = jnp.where(jnp.abs(off) > half_turn, turn, forward)
+    return jnp.where(here <= 0, arrived, travel).astype(jnp.int32)
