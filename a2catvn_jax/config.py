@@ -264,6 +264,7 @@ class AgentConfig(_Section):
     core_size: Count = 256  # LSTM cells (or the frame-stack dense layer)
     segmentation_loss: Literal["mse_rgb", "cross_entropy"] = "mse_rgb"  # class colours (paper) or class ids
     space_to_depth: Bool = False  # run conv1 (8x8/4) as a 2x2/1 conv on 4x4 pixel blocks (the same function)
+    blind: Bool = False  # the network sees observation and target images as zeros (a control)
 
     def _cross_checks(self, k):
         if min(self.conv_channels) < 1:

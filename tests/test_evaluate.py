@@ -174,10 +174,31 @@ def test_cli_corrupt_checkpoint(run, tmp_path):
 
 def test_random_policy_baseline(run):
     """`policy="random"` runs the same evaluation with uniformly random actions."""
-    kwargs = dict(overrides=["env.max_episode_steps=40"], log=quiet)
+    kwargs = dict(overrides=["env.max_episode_steps=40", "env.success_heading_deg=180"], log=quiet)
     random_result = evaluate(run, 8, policy="random", **kwargs)
     sampled = evaluate(run, 8, policy="sample", **kwargs)
     assert random_result["policy"] == "random" and random_result["episodes"] == 8
     assert 0 <= random_result["spl"] <= random_result["success_rate"] <= 1
     per_r, per_s = random_result["per_episode"], sampled["per_episode"]
     assert (per_r["length"], per_r["spl"]) != (per_s["length"], per_s["spl"])
+
+
+def test_baselines_need_no_run(run, tmp_path, capsys, monkeypatch):
+    """`--config FILE --policy random|oracle` evaluates a baseline without a run: the random
+    policy's episodes are those it plays beside a run of the same configuration, and the
+    shortest-path oracle succeeds in every episode."""
+    cfg_file = run / "config.yaml"
+    random_run = evaluate(run, EPISODES, policy="random", seed=1, log=quiet)
+    monkeypatch.chdir(tmp_path)
+    main(["--config", str(cfg_file), "--policy", "random", "--episodes", str(EPISODES), "--seed", "1"])
+    random_alone = json.loads((tmp_path / "baseline_train_random.json").read_text())
+    assert random_alone["per_episode"] == random_run["per_episode"]
+    assert random_alone["workdir"] is None and random_alone["frames"] == 0
+    main(["--config", str(cfg_file), "--policy", "oracle", "--episodes", str(EPISODES), "--out", "oracle.json"])
+    oracle = json.loads((tmp_path / "oracle.json").read_text())
+    assert oracle["policy"] == "oracle" and oracle["success_rate"] == 1.0
+    assert 0 < oracle["spl"] <= 1
+    assert _error(["--config", str(cfg_file), "--policy", "sample"], capsys).endswith(
+        "without a run, --policy must be a baseline: random or oracle")
+    assert _error(["--config", str(cfg_file), "--workdir", str(run)], capsys).endswith(
+        "give --workdir DIR (a trained run) or --config FILE (a baseline without a run)")

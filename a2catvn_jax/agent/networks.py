@@ -273,11 +273,14 @@ class Networks:
     """The A2CAT-VN network as pure functions of its parameters (shapes: N frames).
 
     images [N, H, W, 3] uint8; target features [N, g, g, c2]; conv4 maps
-    [N, g, g, c4]; features [N, dense]; core outputs [N, core].
+    [N, g, g, c4]; features [N, dense]; core outputs [N, core]. A `blind` network sees
+    every observation and target image as zeros (the control that tells whether an
+    agent uses its sight).
     """
 
     module: A2CATNet
     num_actions: int
+    blind: bool = False
 
     def init(self, key) -> Params:
         """Freshly initialised parameters."""
@@ -297,10 +300,14 @@ class Networks:
 
     def target_stream(self, params: Params, target_rgb):
         """conv1, conv2 of target images [K, H, W, 3] -> [K, g, g, c2]."""
+        if self.blind:
+            target_rgb = jnp.zeros_like(target_rgb)
         return self.module.apply(params, target_rgb, method=A2CATNet.target_stream)
 
     def encode(self, params: Params, rgb, target_features):
         """Observations [N, H, W, 3] and their targets' stream features -> (conv4 maps, features)."""
+        if self.blind:
+            rgb = jnp.zeros_like(rgb)
         return self.module.apply(params, rgb, target_features, method=A2CATNet.encode)
 
     def core(self, params: Params, carry: Carry, features, prev_action, prev_reward):
@@ -329,7 +336,7 @@ def make_networks(cfg: Config, num_actions: int) -> Networks:
     tc = cfg.train
     module = A2CATNet(cfg.agent, num_actions, cfg.env.render.image_size, tc.pixel_control_cell, tc.aux_downsize,
                       NUM_CLASSES)
-    return Networks(module, num_actions)
+    return Networks(module, num_actions, cfg.agent.blind)
 
 
 def apply_flat(fn, x, lead: int = 2):

@@ -1,11 +1,13 @@
 """Evaluate a trained agent: success rate, SPL, episode statistics, and a video.
 
 `evaluate(workdir)` restores the parameters of a checkpoint of the run in `workdir`
-(`run.restore`). The policy (sampled; its argmax with `policy="greedy"`; or, as a
-baseline, uniformly random actions with `policy="random"`) then acts in all B
-environments at curriculum complexity 1 until every environment has finished
-ceil(episodes / B) episodes; the first `episodes` of these, in environment order,
-are counted, so that short episodes are not favoured.
+(`run.restore`). The policy (sampled; its argmax with `policy="greedy"`; or a baseline
+that needs no network: uniformly random actions with `policy="random"`, the
+shortest-path oracle with `policy="oracle"`) then acts in all B environments at
+curriculum complexity 1 until every environment has finished ceil(episodes / B)
+episodes; the first `episodes` of these, in environment order, are counted, so that
+short episodes are not favoured. `evaluate_baseline(cfg)` runs a baseline on a
+configuration without any run.
 """
 
 from __future__ import annotations
@@ -20,13 +22,17 @@ from typing import Callable, Optional, Sequence
 import jax
 import numpy as np
 
-from a2catvn_jax.agent.acting import POLICIES, act_as, initial_agent, observe
+from a2catvn_jax.agent.acting import act_as, initial_agent, observe
 from a2catvn_jax.agent.networks import Networks
+from a2catvn_jax.config import Config
 from a2catvn_jax.env import NavEnv
+from a2catvn_jax.env.oracle import oracle_actions
 from a2catvn_jax.run.restore import HOUSES, Restored, check_houses, locate, make_env, make_envs
 from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
 
 MAX_CHUNK = 128  # environment steps per compiled call
+BASELINES = ("random", "oracle")  # policies that need no network
+POLICIES = ("sample", "greedy") + BASELINES
 EPISODE_FIELDS = {  # per-episode list -> environment metric
     "success": "success",
     "length": "episode_length",
@@ -50,14 +56,20 @@ def _compiled(key, make):
     return _COMPILED[key]
 
 
-def _chunk_fn(env: NavEnv, networks: Networks, steps: int, policy: str, video: bool):
+def _chunk_fn(env: NavEnv, networks: Optional[Networks], steps: int, policy: str, video: bool):
     """Jitted: `steps` environment steps of the policy in all environments. The world is
-    an argument, so environments of one configuration and shapes share one compile."""
+    an argument, so environments of one configuration and shapes share one compile.
+    Baselines carry no agent state (None)."""
 
     def run(params, world, target_feats, env_state, agent, key):
         def body(carry, k):
             env_state, agent = carry
-            core, action = act_as(policy, networks, params, target_feats, agent, env_state.obs, k)
+            if policy == "random":
+                action = jax.random.randint(k, (env.num_envs,), 0, env.num_actions)
+            elif policy == "oracle":
+                action = oracle_actions(env, env_state, k, world)
+            else:
+                core, action = act_as(policy, networks, params, target_feats, agent, env_state.obs, k)
             nxt = env.step(env_state, action, world)
             out = {name: nxt.metrics[metric] for name, metric in EPISODE_FIELDS.items()}
             out["done"] = nxt.done
@@ -66,13 +78,14 @@ def _chunk_fn(env: NavEnv, networks: Networks, steps: int, policy: str, video: b
                 out["video"] = {"rgb": env_state.obs.rgb[0], "target_rgb": env_state.obs.target_rgb[0],
                                 "pose": info.pose[0], "target_pose": info.target_pose[0], "scene": info.scene[0],
                                 "goal": info.goal[0]}
-            return (nxt, observe(core, action, nxt)), out
+            return (nxt, None if policy in BASELINES else observe(core, action, nxt)), out
 
         key, sub = jax.random.split(key)
         (env_state, agent), out = jax.lax.scan(body, (env_state, agent), jax.random.split(sub, steps))
         return env_state, agent, key, out
 
-    return _compiled(("chunk", env.cfg, networks, steps, policy, video), lambda: jax.jit(run))
+    key = ("chunk", env.cfg, None if policy in BASELINES else networks, steps, policy, video)
+    return _compiled(key, lambda: jax.jit(run))
 
 
 def _check(episodes: int, policy: str, video, video_episodes: int) -> None:
@@ -135,22 +148,44 @@ def evaluate_sets(workdir, episodes: int = 100, *, houses: Sequence[str] = HOUSE
             for h in houses for p in policies}
 
 
-def run_episodes(restored: Restored, env: NavEnv, houses: str, episodes: int, *, policy: str = "sample",
+def evaluate_baseline(cfg: Config, episodes: int = 100, *, houses: str = "train", policy: str = "random",
+                      seed: int = 0, video=None, video_episodes: int = 2,
+                      log: Callable[[str], None] = print) -> dict:
+    """A baseline policy ("random" or "oracle") in the houses of configuration `cfg`, no run
+    needed: the result of `evaluate` with step and frames 0 and workdir None."""
+    if policy not in BASELINES:
+        raise ValueError(f"a baseline policy is one of {BASELINES}, got {policy!r}")
+    check_houses(houses)
+    t0 = time.perf_counter()
+    env = make_env(cfg.env, houses)
+    log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
+    return run_episodes(None, env, houses, episodes, policy=policy, seed=seed, video=video,
+                        video_episodes=video_episodes, log=log)
+
+
+def run_episodes(restored: Optional[Restored], env: NavEnv, houses: str, episodes: int, *, policy: str = "sample",
                  seed: int = 0, video=None, video_episodes: int = 2, log: Callable[[str], None] = print) -> dict:
-    """Episodes of the restored agent in `env` (see `evaluate`)."""
+    """Episodes of the restored agent (None: a baseline policy, no network) in `env` (see
+    `evaluate`)."""
     _check(episodes, policy, video, video_episodes)
-    cfg, networks, params, step = restored.cfg, restored.networks, restored.params, restored.step
+    if restored is None and policy not in BASELINES:
+        raise ValueError(f"policy {policy!r} needs a trained run; without one use one of {BASELINES}")
+    networks = None if restored is None else restored.networks
+    params = None if restored is None else restored.params
     world = env.world.arrays
     B = env.num_envs
     per_env = math.ceil(episodes / B)
-    chunk = min(MAX_CHUNK, per_env * cfg.env.max_episode_steps)
+    chunk = min(MAX_CHUNK, per_env * env.cfg.max_episode_steps)
     run = _chunk_fn(env, networks, chunk, policy, video is not None)
     k_reset, key = jax.random.split(jax.random.PRNGKey(seed))
     reset = _compiled(("reset", env.cfg), lambda: jax.jit(lambda k, tau, w: env.reset(k, complexity=tau, world=w)))
-    env_state = reset(k_reset, cfg.env.complexity, world)
-    agent = initial_agent(networks, B)
-    target_stream = _compiled(("targets", networks), lambda: jax.jit(networks.target_stream))
-    target_feats = target_stream(params, env.target_images(world)["rgb"])
+    env_state = reset(k_reset, env.cfg.complexity, world)
+    if policy in BASELINES:
+        agent = target_feats = None
+    else:
+        agent = initial_agent(networks, B)
+        target_stream = _compiled(("targets", networks), lambda: jax.jit(networks.target_stream))
+        target_feats = target_stream(params, env.target_images(world)["rgb"])
 
     found: list[list[dict]] = [[] for _ in range(B)]
     video_steps: list[dict] = []
@@ -177,17 +212,18 @@ def run_episodes(restored: Restored, env: NavEnv, houses: str, episodes: int, *,
 
     counted = [e for env_episodes in found for e in env_episodes][:episodes]
     lists = {name: [e[name] for e in counted] for name in EPISODE_FIELDS}
+    step = 0 if restored is None else restored.step
     result = {
-        "workdir": str(restored.workdir),
+        "workdir": None if restored is None else str(restored.workdir),
         "step": step,
-        "frames": restored.frames,
+        "frames": 0 if restored is None else restored.frames,
         "houses": houses,
         "scenes": [scene.name for scene in env.world.scenes],
         "policy": policy,
         "seed": seed,
-        "complexity": cfg.env.complexity,
+        "complexity": env.cfg.complexity,
         "num_envs": B,
-        "max_episode_steps": cfg.env.max_episode_steps,
+        "max_episode_steps": env.cfg.max_episode_steps,
         "eval_frames": steps * B,
         "episodes": len(counted),
         "success_rate": float(np.mean(lists["success"])),
