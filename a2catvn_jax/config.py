@@ -221,6 +221,7 @@ class EnvConfig(_Section):
     """The batched navigation environment: agents, goals, episodes, noise, curriculum."""
 
     num_envs: Count = 16  # B
+    new_scene_per_episode: Bool = False  # each episode in a scene drawn uniformly (else agent b stays in scene b mod S)
     action_set: Literal["full", "no_tilt", "grid"] = "full"
     goal: Literal["image", "room", "object"] = "image"
     goals_per_scene: Count = 8

@@ -169,3 +169,30 @@ def test_runs_written_before_the_criteria_keep_their_behaviour(tmp_path):
     # A saved configuration that has the keys keeps its own values.
     save_config(cfg, tmp_path / "config.yaml")
     assert read_run_config(tmp_path).env.success_heading_deg == cfg.env.success_heading_deg != 180.0
+
+
+def test_new_scene_per_episode():
+    """With `new_scene_per_episode` each episode starts in a scene drawn uniformly (the
+    observation's target and the start follow it); without, agent b stays in scene b mod S."""
+    cfgs = [load_config(None, BASE + ["env.scene.kind=room", "env.scene.num_scenes=4", "env.num_envs=4",
+                                      "env.max_episode_steps=1", f"env.new_scene_per_episode={flag}"]).env
+            for flag in ("true", "false")]
+    first = NavEnv(cfgs[0])
+    scenes = {}
+    for cfg in cfgs:
+        env = NavEnv(cfg, world=first.world)
+
+        def body(state, key):
+            nxt = env.step(state, jax.random.randint(key, (4,), 0, env.num_actions))
+            return nxt, (nxt.info.scene, nxt.info.goal, nxt.obs.target_index, nxt.done)
+
+        state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+        run = jax.jit(lambda s, k: jax.lax.scan(body, s, jax.random.split(k, 200)))
+        scene, goal, target, done = jax.device_get(run(state, jax.random.PRNGKey(1))[1])
+        assert done.all()
+        np.testing.assert_array_equal(target, scene * cfg.goals_per_scene + goal)
+        scenes[cfg.new_scene_per_episode] = scene
+    np.testing.assert_array_equal(scenes[False], np.broadcast_to(np.arange(4), (200, 4)))
+    counts = np.bincount(scenes[True].ravel(), minlength=4)
+    assert counts.min() > 150 and counts.max() < 250  # 800 draws, 200 expected per scene
+    assert all(len(np.unique(scenes[True][:, b])) == 4 for b in range(4))

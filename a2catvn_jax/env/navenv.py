@@ -31,6 +31,10 @@ of the continuous sets the position gets N(0, 0.02^2) noise per axis and the hea
 N(0, (2 deg)^2). Moves are swept against obstacle footprints grown by the agent's
 radius and stop just before contact, so the agent never ends inside a geom.
 
+Agent b lives in scene b mod S, or with `new_scene_per_episode` each of its episodes
+starts in a scene drawn uniformly from the S scenes (training over more houses than
+agents).
+
 The curriculum complexity tau is data (`State.info.complexity`): a new start is
 drawn uniformly among free cells whose geodesic distance to the goal is at most
 tau * (the scene's largest geodesic distance).
@@ -193,6 +197,7 @@ class NavEnv:
         tau = jnp.full((B,), self.cfg.complexity if complexity is None else complexity, jnp.float32)
         keys = jax.random.split(key, B)
         scene = jnp.arange(B, dtype=jnp.int32) % w.free.shape[0]
+        keys, scene = self._next_scene(w, keys, scene)
         keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, scene, tau)
         info = self._episode_info(w, start, scene, tau, keys)
         frame = self._render(w, scene, info.pose)
@@ -222,8 +227,9 @@ class NavEnv:
         ended = info.replace(pose=pose, step=step, path_length=info.path_length + moved,
                              episode_return=info.episode_return + reward)
 
-        keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, info.scene, info.complexity)
-        fresh = self._episode_info(w, start, info.scene, info.complexity, keys)
+        keys, scene = self._next_scene(w, keys, info.scene)
+        keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, scene, info.complexity)
+        fresh = self._episode_info(w, start, scene, info.complexity, keys)
         ended = ended.replace(key=keys)
         new_info = jax.tree_util.tree_map(lambda a, b: _where(done, a, b), fresh, ended)
         frame = self._render(w, new_info.scene, new_info.pose)
@@ -335,6 +341,15 @@ class NavEnv:
         seen = region & self.in_view(w, info.scene, info.goal, frame)
         streak = jnp.where(seen, jnp.where(keep, info.view_streak, 0) + 1, 0)
         return info.replace(view_streak=streak.astype(jnp.int32))
+
+    def _next_scene(self, w: WorldArrays, keys, scene):
+        """(keys, the scenes [B] of the agents' next episodes): their own, or with
+        `new_scene_per_episode` one drawn uniformly from the world's S scenes."""
+        if not self.cfg.new_scene_per_episode:
+            return keys, scene
+        keys, sub = jax.vmap(jax.random.split, out_axes=1)(keys)
+        drawn = jax.vmap(lambda k: jax.random.randint(k, (), 0, w.free.shape[0]))(sub)
+        return keys, drawn.astype(jnp.int32)
 
     def _sample_episode(self, w: WorldArrays, key, scene, tau):
         """(next key, (goal, pose, start distance)) of a new episode in `scene`."""
