@@ -1,7 +1,7 @@
 """What every command line shares: the configuration arguments and one-line errors.
 
     parser = argparse.ArgumentParser(...)
-    cli.add_config_args(parser)              # --config PATH, --set KEY=VALUE ...
+    cli.add_config_args(parser)              # --config PATH [PATH ...], --set KEY=VALUE ...
     args = parser.parse_args()
     with cli.errors(parser, code=2):
         cfg = cli.config_from_args(args)     # a UserError becomes "error: ..." and exit 2
@@ -23,16 +23,18 @@ SET_HELP = "override config keys, e.g. --set env.num_envs=32 env.render.culling=
 
 def add_config_args(parser: argparse.ArgumentParser, *, config: bool = True,
                     help: str = SET_HELP) -> argparse.ArgumentParser:
-    """Add `--config PATH` (unless `config` is False) and `--set KEY=VALUE [KEY=VALUE ...]`
-    (repeatable) to `parser`.
+    """Add `--config PATH [PATH ...]` (unless `config` is False) and `--set KEY=VALUE
+    [KEY=VALUE ...]` (repeatable) to `parser`.
 
-    Parsed into `args.config` (str or None) and `args.overrides` (list of lists; read
-    them with `overrides_of`). Because `--set` takes several values, put positional
-    arguments before it or separate them with `--`.
+    Parsed into `args.config` (a list of paths, or None) and `args.overrides` (list of
+    lists; read them with `overrides_of`). Because `--config` and `--set` take several
+    values, put positional arguments before them or separate them with `--`.
     """
     group = parser.add_argument_group("configuration")
     if config:
-        group.add_argument("--config", metavar="PATH", default=None, help="YAML config file (may list only some keys)")
+        group.add_argument("--config", metavar="PATH", nargs="+", default=None,
+                           help="YAML config file(s), each may list only some keys; a later file's keys override an "
+                                "earlier one's, e.g. --config configs/paper.yaml configs/presets/authors_network.yaml")
     group.add_argument("--set", dest="overrides", metavar="KEY=VALUE", nargs="+", action="append", default=[], help=help)
     return parser
 
@@ -50,8 +52,9 @@ def overrides_of(args: argparse.Namespace) -> list[str]:
 
 def config_from_args(args: argparse.Namespace, *, schema: type = Config,
                      default: Optional[str | os.PathLike] = None) -> Any:
-    """The configuration of a namespace parsed with `add_config_args`: the `--config` file
-    (or `default` when none was given; None: the built-in defaults) with the overrides."""
+    """The configuration of a namespace parsed with `add_config_args`: the `--config`
+    files merged in order (or `default` when none was given; None: the built-in
+    defaults) with the overrides."""
     path = getattr(args, "config", None)
     return load_config(default if path is None else path, overrides_of(args), schema=schema)
 

@@ -8,7 +8,7 @@ a float key takes ints (as floats) but no bool, string, nan or inf; a boolean ke
 only true/false. Adding a section is a matter of writing a `_Section` dataclass and
 adding it as a field (with `field(default_factory=...)`) of its parent.
 
-Loading goes file -> dict -> dotted overrides merged into the dict -> one call to
+Loading goes file(s) -> dict -> dotted overrides merged into the dict -> one call to
 `from_dict`, where pydantic builds and validates the whole tree. Checks involving
 several keys are each section's `_cross_checks`, run as a pydantic model validator once
 the section's keys are individually valid (so a parent may rely on valid children).
@@ -728,19 +728,35 @@ def apply_overrides(cfg: Any, overrides: Sequence[str] = ()) -> Any:
     return from_dict(root, data)
 
 
-def load_config(
-    path: Optional[str | os.PathLike] = None, overrides: Sequence[str] = (), *, schema: type = Config
-) -> Any:
-    """Load a config: defaults <- YAML file at `path` (may be partial; None: none) <- overrides.
+def _merge(base: dict, update: Mapping) -> dict:
+    """`base` with the keys of `update` set in it, sections (mappings) merged key by key."""
+    for key, value in update.items():
+        if isinstance(value, Mapping) and isinstance(base.get(key), dict):
+            _merge(base[key], value)
+        else:
+            base[key] = copy.deepcopy(value)
+    return base
 
-    Overrides are "dotted.key=value" strings; the value is parsed as YAML (numbers,
-    `true`/`false`, `null`, `[1, 2]` lists), except that string-typed keys take the
-    raw text when it does not parse to a string. The merged result is validated once.
-    `schema` is the root dataclass (default `Config`).
+
+def load_config(
+    path: Optional[str | os.PathLike | Sequence[str | os.PathLike]] = None, overrides: Sequence[str] = (), *,
+    schema: type = Config
+) -> Any:
+    """Load a config: defaults <- YAML file(s) at `path` (each may be partial; None: none) <- overrides.
+
+    `path` is one file or a list of files; a later file's keys override an earlier
+    one's (sections merge key by key, a list is replaced whole). Overrides are
+    "dotted.key=value" strings; the value is parsed as YAML (numbers, `true`/`false`,
+    `null`, `[1, 2]` lists), except that string-typed keys take the raw text when it
+    does not parse to a string. The merged result is validated once. `schema` is the
+    root dataclass (default `Config`).
     """
     if isinstance(overrides, str):
         overrides = [overrides]
-    data = copy.deepcopy(_read_yaml(path)) if path is not None else {}
+    paths = [] if path is None else [path] if isinstance(path, (str, os.PathLike)) else list(path)
+    data: dict = {}
+    for one in paths:
+        _merge(data, _read_yaml(one))
     for text in overrides:
         _apply_override(data, text, schema)
     return from_dict(schema, data)

@@ -1,6 +1,6 @@
 """Supervised pre-training of the conv base with the depth and segmentation heads.
 
-    python -m a2catvn_jax.pretrain [--config FILE] --workdir DIR [--set KEY=VALUE ...]
+    python -m a2catvn_jax.pretrain [--config FILE [FILE ...]] --workdir DIR [--set KEY=VALUE ...]
 
 Renders `pretrain.dataset_size` observations at random poses in the training scenes
 with their depth and segmentation, trains the conv base and the depth / segmentation

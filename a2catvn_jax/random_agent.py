@@ -1,6 +1,6 @@
 """Run a uniformly random policy in the environment and write a video of it.
 
-    python -m a2catvn_jax.random_agent [--config FILE] [--set KEY=VALUE ...]
+    python -m a2catvn_jax.random_agent [--config FILE [FILE ...]] [--set KEY=VALUE ...]
         [--steps 300] [--out random_agent.gif]
 
 The video shows, for agent 0, its observation, the target image, depth and the

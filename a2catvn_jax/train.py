@@ -1,6 +1,6 @@
 """Train an A2CAT-VN agent.
 
-    python -m a2catvn_jax.train [--config configs/NAME.yaml] [--workdir DIR] [--set KEY=VALUE ...]
+    python -m a2catvn_jax.train [--config configs/NAME.yaml [MORE.yaml ...]] [--workdir DIR] [--set KEY=VALUE ...]
         [--resume] [--updates N] [--init-from PRETRAIN_DIR]
 
 With no arguments it trains the quickstart configuration (`configs/quickstart.yaml`)

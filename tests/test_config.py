@@ -336,6 +336,28 @@ def test_section_not_mapping_in_file(tmp_path):
         load_config(_write(tmp_path, "env:\n  render: 64\n"))
 
 
+def test_several_files_merge_in_order(tmp_path):
+    first = _write(tmp_path, "seed: 1\nenv:\n  num_envs: 4\n  render:\n    image_size: 32\n    fovy: 70\n"
+                             "  scene:\n    grid: [2, 3]\n", "a.yaml")
+    second = _write(tmp_path, "env:\n  num_envs: 8\n  render:\n    image_size: 48\n  scene:\n    grid: [1, 1]\n",
+                    "b.yaml")
+    cfg = load_config([first, second], ["env.num_envs=2"])
+    assert (cfg.seed, cfg.env.render.fovy) == (1, 70.0)  # only in the first file
+    assert (cfg.env.render.image_size, cfg.env.scene.grid) == (48, (1, 1))  # the later file wins, lists whole
+    assert cfg.env.num_envs == 2  # overrides win over every file
+    assert load_config([second, first]).env.render.image_size == 32
+    assert load_config([first]) == load_config(first) == load_config(Path(first))
+    assert load_config([]) == Config()
+
+
+def test_missing_second_file(tmp_path):
+    first = _write(tmp_path, "seed: 1\n")
+    missing = tmp_path / "nope.yaml"
+    with pytest.raises(ConfigError, match="config file not found") as ei:
+        load_config([first, missing])
+    assert str(missing) in str(ei.value)
+
+
 # ------------------------------------------------------------------ save and load
 
 
@@ -374,6 +396,19 @@ def test_argparse_integration(tmp_path):
     assert cfg.env.num_envs == 2
     assert cfg.env.render.image_size == 32
     assert cfg.env.render.culling is False
+
+
+def test_argparse_several_config_files(tmp_path):
+    first = _write(tmp_path, "env:\n  num_envs: 4\n  render:\n    image_size: 32\n", "a.yaml")
+    second = _write(tmp_path, "env:\n  num_envs: 6\n", "b.yaml")
+    parser = add_config_args(argparse.ArgumentParser())
+    args = parser.parse_args(["--config", first, second, "--set", "seed=3"])
+    assert args.config == [first, second]
+    cfg = config_from_args(args)
+    assert (cfg.env.num_envs, cfg.env.render.image_size, cfg.seed) == (6, 32, 3)
+    assert config_from_args(parser.parse_args(["--config", second, first])).env.num_envs == 4
+    with pytest.raises(ConfigError, match="config file not found"):
+        config_from_args(parser.parse_args(["--config", first, str(tmp_path / "missing.yaml")]))
 
 
 def test_argparse_defaults():
