@@ -261,15 +261,64 @@ class AgentConfig(_Section):
     memory: Literal["lstm", "frame_stack"] = "lstm"  # LSTM, or the last `stack` frames and a dense layer
     stack: Annotated[int, Strict(), Field(ge=2)] = 4  # frames of the frame-stack variant
     conv_channels: Quad[Int] = (16, 32, 32, 32)  # conv1, conv2 (shared stream), conv3, conv4
+    conv_kernels: Quad[Count] = (8, 4, 3, 3)  # square kernel sides of conv1..conv4, each >= its stride
+    conv_strides: Quad[Count] = (4, 2, 1, 1)  # strides of conv1..conv4
+    conv_padding: Literal["same", "valid"] = "same"  # same: ceil(n / stride) outputs; valid: no padding
     dense_size: Count = 256  # the dense layer after the conv base
     core_size: Count = 256  # LSTM cells (or the frame-stack dense layer)
     segmentation_loss: Literal["mse_rgb", "cross_entropy"] = "mse_rgb"  # class colours (paper) or class ids
-    space_to_depth: Bool = False  # run conv1 (8x8/4) as a 2x2/1 conv on 4x4 pixel blocks (the same function)
+    space_to_depth: Bool = False  # run conv1 as a conv on stride x stride pixel blocks (the same function)
     blind: Bool = False  # the network sees observation and target images as zeros (a control)
+    vision_heads: Literal["upsample", "transposed"] = "upsample"  # depth / segmentation head layout
+    init: Literal["lecun", "uniform_fan_in"] = "lecun"  # weight initialisation
+
+    def conv_sizes(self, image_size: int) -> list[int]:
+        """Side of the image and of conv1..conv4's maps; with valid padding a layer whose
+        input is smaller than its kernel ends the list (check `_image_checks`)."""
+        sizes = [image_size]
+        for kernel, stride in zip(self.conv_kernels, self.conv_strides):
+            n = sizes[-1]
+            if self.conv_padding == "same":
+                sizes.append(-(-n // stride))
+            elif n >= kernel:
+                sizes.append((n - kernel) // stride + 1)
+            else:
+                break
+        return sizes
 
     def _cross_checks(self, k):
         if min(self.conv_channels) < 1:
             yield k("conv_channels"), f"all must be >= 1, got {list(self.conv_channels)}"
+        for i, (kernel, stride) in enumerate(zip(self.conv_kernels, self.conv_strides)):
+            if kernel < stride:
+                yield k("conv_kernels"), (f"conv{i + 1}'s kernel {kernel} is smaller than its stride {stride} "
+                                          f"({k('conv_strides')}), so its windows would skip pixels")
+        if self.space_to_depth and self.conv_kernels[0] % self.conv_strides[0]:
+            yield k("space_to_depth"), (f"needs conv1's kernel to be a multiple of its stride, got kernel "
+                                        f"{self.conv_kernels[0]} ({k('conv_kernels')}) and stride "
+                                        f"{self.conv_strides[0]} ({k('conv_strides')})")
+
+    def _image_checks(self, k, image_size: int, aux_downsize: int, image_key: str, aux_key: str):
+        """Checks of the conv stack against the image size and the auxiliary targets'
+        resolution (keys of other sections given in full)."""
+        sizes = self.conv_sizes(image_size)
+        if len(sizes) < 5:
+            i = len(sizes)  # the conv layer whose input is smaller than its kernel
+            need = 1
+            for kernel, stride in zip(self.conv_kernels[::-1], self.conv_strides[::-1]):
+                need = (need - 1) * stride + kernel
+            kernel, stride = self.conv_kernels[i - 1], self.conv_strides[i - 1]
+            yield image_key, (f"{image_size} is too small for the conv stack with {k('conv_padding')}=valid: "
+                              f"conv{i} ({kernel}x{kernel}/{stride}) gets {sizes[-1]}x{sizes[-1]} maps (sizes "
+                              f"{' -> '.join(map(str, sizes))}); use images of at least {need} pixels or "
+                              f"{k('conv_padding')}=same")
+        scale = 1
+        for stride in self.conv_strides:
+            scale *= stride
+        if self.vision_heads == "transposed" and scale != 4 * aux_downsize:
+            yield k("vision_heads"), (f"'transposed' (two stride-2 transposed convs) brings conv4's maps from "
+                                      f"stride {scale} in the image ({k('conv_strides')} {list(self.conv_strides)}) "
+                                      f"to stride {scale / 4:g}, which must equal {aux_key} ({aux_downsize})")
 
 
 @dataclass(frozen=True)
@@ -356,6 +405,8 @@ class Config(_Section):
             if size // factor < 2:
                 yield k(f"train.{name}"), (f"{factor} leaves fewer than 2 cells across a {size}-pixel image "
                                            f"({k('env.render.image_size')})")
+        yield from self.agent._image_checks(lambda key: k(f"agent.{key}"), size, self.train.aux_downsize,
+                                            k("env.render.image_size"), k("train.aux_downsize"))
 
 
 # ------------------------------------------------------------------ schema look-ups

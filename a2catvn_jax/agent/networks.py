@@ -1,19 +1,22 @@
 """The A2CAT-VN network (Flax linen).
 
 Conv base: the observation and the target image each pass the same two strided conv
-layers (shared weights: conv1 8x8/4, conv2 4x4/2); the two feature maps are
-concatenated and pass conv3 and conv4 (3x3/1) and one dense layer, ReLU everywhere.
-These features, the one-hot previous action and the previous reward clipped to
-[-1, 1] feed the memory core: an LSTM, or (the frame-stack variant) a dense layer over
-the features of the last `stack` frames. Heads:
+layers (shared weights: conv1, conv2); the two feature maps are concatenated and pass
+conv3, conv4 and one dense layer, ReLU everywhere. These features, the one-hot previous
+action and the previous reward clipped to [-1, 1] feed the memory core: an LSTM, or
+(the frame-stack variant) a dense layer over the features of the last `stack` frames.
+Kernels, strides and padding of the four conv layers are `agent.conv_kernels`,
+`agent.conv_strides` and `agent.conv_padding` (default 8x8/4, 4x4/2, 3x3/1, 3x3/1,
+"same"; `configs/presets/authors_network.yaml` gives another stack). Heads:
 
 - actor (policy logits) and critic (value): affine maps of the core output;
 - pixel control: dense + stride-2 deconvolution from the core output to a
   (image // cell)^2 grid of Q-values per action, dueling (V + A - mean A);
 - reward prediction: conv4 features of three consecutive frames -> 3 classes
   (zero, positive, negative reward);
-- depth, observation segmentation, target segmentation: stride-2 deconvolution heads
-  on conv4, at 1/`aux_downsize` of the image resolution.
+- depth, observation segmentation, target segmentation: heads on conv4 at
+  1/`aux_downsize` of the image resolution, in one of two layouts
+  (`agent.vision_heads`, see `VNHeads`).
 
 `make_networks` wraps the Flax module in `Networks`, a set of pure functions of
 (params, inputs): the rest of the package never sees Flax. The network is split into
@@ -23,16 +26,28 @@ weight. The target stream (conv1, conv2 of the target image) is a function of it
 because targets are few: it runs once per distinct target image and the result is
 gathered.
 
-conv1 works on uint8 images. With `space_to_depth` it is computed as a 2x2/1 conv on
-4x4 pixel blocks (48 channels) with the same 8x8x3 kernel rearranged: the same
-function, which some backends run faster (docs/benchmarks.md). Both paths pad the image by 4 pixels at the
-top/left (and to a multiple of 4 at the bottom/right), so conv1 maps an HxW image to
-ceil(H/4) x ceil(W/4).
-"""
+Padding: with "valid" no layer pads (an n-pixel input gives (n - k) // s + 1 outputs).
+With "same" each layer gives ceil(n / s) outputs: conv2..conv4 pad as `lax`'s "SAME"
+(half the padding at the top/left, the rest at the bottom/right); conv1 pads k - s
+pixels at the top/left and the rest at the bottom/right, so that each output pixel's
+window ends where its own stride block ends (8x8/4: 4 pixels at the top/left).
 
+conv1 works on uint8 images. With `space_to_depth` (conv1's kernel k a multiple of its
+stride s) it is computed as a (k/s)x(k/s)/1 conv on s x s pixel blocks (s*s*3
+channels) with the same kernel rearranged: the same function, which some backends run
+faster (docs/benchmarks.md).
+
+Initialisation (`agent.init`): "lecun" gives conv and dense kernels LeCun-normal values,
+the policy head orthogonal(0.01) and the LSTM flax's defaults; "uniform_fan_in" draws
+every conv, transposed-conv and dense kernel (the policy head's too) uniformly in
++-1/sqrt(fan_in) (`fan_in_uniform`) and the LSTM's input kernels Glorot-uniform over its
+four gates together, its recurrent kernels orthogonal over the four gates together.
+Biases start at zero in both.
+"""
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import flax.linen as nn
@@ -64,27 +79,85 @@ def space_to_depth(x, block: int):
     return x.transpose(0, 1, 3, 2, 4, 5).reshape(n, h // block, w // block, block * block * c)
 
 
+def fan_in_uniform(transposed: bool = False):
+    """Initialiser of kernels [..., in, out] uniform in +-1/sqrt(fan_in). fan_in is the
+    kernel area times the input channels; for a transposed conv, the kernel area times
+    the output channels (each output pixel is a sum over its output-channel slice of the
+    kernel, the way PyTorch counts it for its transposed convolutions)."""
+
+    def init(key, shape, dtype=jnp.float32):
+        fan_in = math.prod(shape[:-2]) * (shape[-1] if transposed else shape[-2])
+        bound = 1.0 / math.sqrt(fan_in)
+        return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+    return init
+
+
+def _gates_glorot_uniform(gates: int = 4):
+    """Initialiser of one gate's kernel [in, hidden] of an LSTM, Glorot-uniform over the
+    `gates` gates' kernels together ([in, gates * hidden])."""
+
+    def init(key, shape, dtype=jnp.float32):
+        bound = math.sqrt(6.0 / (shape[0] + gates * shape[1]))
+        return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+    return init
+
+
+@dataclasses.dataclass(frozen=True)
+class Inits:
+    """The kernel initialisers of one `agent.init` choice."""
+
+    kernel: Any  # conv and dense kernels
+    transposed: Any  # transposed-conv kernels
+    policy: Any  # the policy head's kernel
+    lstm: dict  # OptimizedLSTMCell's initialiser arguments
+
+    @staticmethod
+    def of(name: str) -> "Inits":
+        if name == "lecun":
+            lecun = nn.initializers.lecun_normal()
+            return Inits(lecun, lecun, nn.initializers.orthogonal(0.01), {})
+        # The four gates' recurrent kernels, each orthogonal and scaled by 1/2, stacked
+        # into [4 * hidden, hidden] have orthonormal columns.
+        lstm = {"kernel_init": _gates_glorot_uniform(4), "recurrent_kernel_init": nn.initializers.orthogonal(0.5)}
+        return Inits(fan_in_uniform(), fan_in_uniform(transposed=True), fan_in_uniform(), lstm)
+
+
 class Conv1(nn.Module):
-    """conv1: 8x8 stride 4 on uint8 RGB, padded 4 at the top/left; optional space-to-depth."""
+    """conv1: kernel x kernel, stride `stride` on uint8 RGB; optional space-to-depth.
+
+    padding "same": `kernel - stride` pixels at the top/left and enough at the
+    bottom/right for ceil(H / stride) outputs; "valid": none."""
 
     features: int
     space_to_depth: bool = False
+    kernel_size: int = 8
+    stride: int = 4
+    padding: str = "same"
+    kernel_init: Any = nn.initializers.lecun_normal()
 
     @nn.compact
     def __call__(self, image):
         n, h, w, c = image.shape
-        kernel = self.param("kernel", nn.initializers.lecun_normal(), (8, 8, c, self.features))
+        k, s = self.kernel_size, self.stride
+        kernel = self.param("kernel", self.kernel_init, (k, k, c, self.features))
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
-        hp, wp = -(-h // 4) * 4, -(-w // 4) * 4
         x = image.astype(jnp.float32) * (1.0 / 255.0)
-        x = jnp.pad(x, ((0, 0), (4, hp - h), (4, wp - w), (0, 0)))
+        if self.padding == "same":
+            hp, wp = -(-h // s) * s, -(-w // s) * s
+            x = jnp.pad(x, ((0, 0), (k - s, hp - h), (k - s, wp - w), (0, 0)))
+        else:  # the rows and columns the windows reach: a multiple of the stride when k is
+            oh, ow = (h - k) // s + 1, (w - k) // s + 1
+            x = x[:, : (oh - 1) * s + k, : (ow - 1) * s + k]
         dims = ("NHWC", "HWIO", "NHWC")
         if self.space_to_depth:
-            x = space_to_depth(x, 4)
-            k = kernel.reshape(2, 4, 2, 4, c, self.features).transpose(0, 2, 1, 3, 4, 5).reshape(2, 2, 16 * c, self.features)
-            y = jax.lax.conv_general_dilated(x, k, (1, 1), "VALID", dimension_numbers=dims)
+            m = k // s
+            x = space_to_depth(x, s)
+            kk = kernel.reshape(m, s, m, s, c, self.features).transpose(0, 2, 1, 3, 4, 5).reshape(m, m, s * s * c, self.features)
+            y = jax.lax.conv_general_dilated(x, kk, (1, 1), "VALID", dimension_numbers=dims)
         else:
-            y = jax.lax.conv_general_dilated(x, kernel, (4, 4), "VALID", dimension_numbers=dims)
+            y = jax.lax.conv_general_dilated(x, kernel, (s, s), "VALID", dimension_numbers=dims)
         return y + bias
 
 
@@ -99,29 +172,38 @@ class A2CATNet(nn.Module):
     num_classes: int = 25
 
     def setup(self):
-        c1, c2, c3, c4 = self.cfg.conv_channels
-        self.conv1 = Conv1(c1, self.cfg.space_to_depth)
-        self.conv2 = nn.Conv(c2, (4, 4), (2, 2), padding="SAME")
-        self.conv3 = nn.Conv(c3, (3, 3), (1, 1), padding="SAME")
-        self.conv4 = nn.Conv(c4, (3, 3), (1, 1), padding="SAME")
-        self.dense = nn.Dense(self.cfg.dense_size)
-        if self.cfg.memory == "lstm":
-            self.lstm = nn.OptimizedLSTMCell(self.cfg.core_size)
+        cfg, init = self.cfg, Inits.of(self.cfg.init)
+        c1, c2, c3, c4 = cfg.conv_channels
+        k1, k2, k3, k4 = cfg.conv_kernels
+        s1, s2, s3, s4 = cfg.conv_strides
+        pad = cfg.conv_padding.upper()
+        self.conv1 = Conv1(c1, cfg.space_to_depth, k1, s1, cfg.conv_padding, init.kernel)
+        self.conv2 = nn.Conv(c2, (k2, k2), (s2, s2), padding=pad, kernel_init=init.kernel)
+        self.conv3 = nn.Conv(c3, (k3, k3), (s3, s3), padding=pad, kernel_init=init.kernel)
+        self.conv4 = nn.Conv(c4, (k4, k4), (s4, s4), padding=pad, kernel_init=init.kernel)
+        self.dense = nn.Dense(cfg.dense_size, kernel_init=init.kernel)
+        if cfg.memory == "lstm":
+            self.lstm = nn.OptimizedLSTMCell(cfg.core_size, **init.lstm)
         else:
-            self.stack_dense = nn.Dense(self.cfg.core_size)
-        self.policy = nn.Dense(self.num_actions, kernel_init=nn.initializers.orthogonal(0.01))
-        self.value = nn.Dense(1)
+            self.stack_dense = nn.Dense(cfg.core_size, kernel_init=init.kernel)
+        self.policy = nn.Dense(self.num_actions, kernel_init=init.policy)
+        self.value = nn.Dense(1, kernel_init=init.kernel)
         # Pixel control.
         g = self.pc_grid
         self.pc_half = -(-g // 2)
-        self.pc_dense = nn.Dense(self.pc_half * self.pc_half * _PC_CHANNELS)
-        self.pc_value = Upsample2x(1)
-        self.pc_advantage = Upsample2x(self.num_actions)
+        self.pc_dense = nn.Dense(self.pc_half * self.pc_half * _PC_CHANNELS, kernel_init=init.kernel)
+        self.pc_value = Upsample2x(1, init.kernel)
+        self.pc_advantage = Upsample2x(self.num_actions, init.kernel)
         # Reward prediction.
-        self.rp = nn.Dense(REWARD_CLASSES)
+        self.rp = nn.Dense(REWARD_CLASSES, kernel_init=init.kernel)
         # Visual-navigation auxiliary heads.
-        seg_out = 3 if self.cfg.segmentation_loss == "mse_rgb" else self.num_classes
-        self.vn = VNHeads({"depth": 1, "segmentation": seg_out, "target_segmentation": seg_out}, self.aux_size)
+        seg_out = 3 if cfg.segmentation_loss == "mse_rgb" else self.num_classes
+        outputs = {"depth": 1, "segmentation": seg_out, "target_segmentation": seg_out}
+        if cfg.vision_heads == "transposed":
+            self.vn = TransposedVNHeads(outputs, self.aux_size, transposed_heads_offset(cfg, self.image_size, self.aux_downsize),
+                                        init.transposed)
+        else:
+            self.vn = VNHeads(outputs, self.aux_size, init.kernel)
 
     # -- sizes ----------------------------------------------------------------------
 
@@ -218,33 +300,39 @@ class Upsample2x(nn.Module):
     """
 
     features: int
+    kernel_init: Any = nn.initializers.lecun_normal()
 
     @nn.compact
     def __call__(self, x):
-        y = nn.Conv(4 * self.features, (2, 2), padding=((0, 1), (0, 1)))(x)
+        y = nn.Conv(4 * self.features, (2, 2), padding=((0, 1), (0, 1)), kernel_init=self.kernel_init)(x)
         return depth_to_space(y, 2)
 
 
 class VNHeads(nn.Module):
-    """Depth / observation segmentation / target segmentation heads on conv4.
+    """Depth / observation segmentation / target segmentation heads on conv4, layout
+    "upsample" (`agent.vision_heads`).
 
     Each head is a stride-2 learned upsampling to HIDDEN[head] channels, ReLU, and a 3x3
-    conv to its outputs, cropped (or resized) to `size` x `size`. The upsampling layers
-    of the requested heads read the same input, so they run as one convolution with
-    their kernels side by side: the same function as separate layers, in one pass.
+    conv to its outputs, cropped at the bottom/right (or, when smaller, bilinearly
+    resized) to `size` x `size`. With the default conv stack conv4 is at 1/8 of the
+    image resolution and the heads at 1/4. The upsampling layers of the requested heads
+    read the same input, so they run as one convolution with their kernels side by
+    side: the same function as separate layers, in one pass.
     """
 
     outputs: dict  # head -> output channels
     size: int
+    kernel_init: Any = nn.initializers.lecun_normal()
     HIDDEN = {"depth": 32, "segmentation": 64, "target_segmentation": 64}
 
     @nn.compact
     def __call__(self, x, heads: tuple):
         c_in = x.shape[-1]
-        kernels = {h: self.param(f"{h}_up_kernel", nn.initializers.lecun_normal(), (2, 2, c_in, 4 * n))
+        kernels = {h: self.param(f"{h}_up_kernel", self.kernel_init, (2, 2, c_in, 4 * n))
                    for h, n in self.HIDDEN.items()}
         biases = {h: self.param(f"{h}_up_bias", nn.initializers.zeros, (4 * n,)) for h, n in self.HIDDEN.items()}
-        finals = {h: nn.Conv(self.outputs[h], (3, 3), padding="SAME", name=f"{h}_out") for h in self.HIDDEN}
+        finals = {h: nn.Conv(self.outputs[h], (3, 3), padding="SAME", kernel_init=self.kernel_init, name=f"{h}_out")
+                  for h in self.HIDDEN}
         if not heads:
             return {}
         kernel = jnp.concatenate([kernels[h] for h in heads], axis=-1)
@@ -262,6 +350,90 @@ class VNHeads(nn.Module):
                 z = jax.image.resize(z, (z.shape[0], self.size, self.size, z.shape[-1]), "bilinear")
             out[h] = z
         return out
+
+
+def conv_transpose(x, kernel, stride: int):
+    """Transposed convolution without padding of x [N, n, n, C] by kernel [k, k, C, F]:
+    input pixel l adds x[l] * kernel[t] to output pixel stride * l + t (t < k), so the
+    output is (n - 1) * stride + k pixels wide."""
+    flipped = kernel[::-1, ::-1]
+    k = kernel.shape[0]
+    return jax.lax.conv_general_dilated(x, flipped, (1, 1), ((k - 1, k - 1), (k - 1, k - 1)),
+                                        lhs_dilation=(stride, stride), dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+
+def _same_pad_before(n: int, kernel: int, stride: int) -> int:
+    """Padding `lax`'s "SAME" puts before an n-pixel input."""
+    out = -(-n // stride)
+    return max((out - 1) * stride + kernel - n, 0) // 2
+
+
+def transposed_heads_offset(cfg: AgentConfig, image_size: int, aux_downsize: int) -> int:
+    """Where the `TransposedVNHeads` output's window of auxiliary-target cells starts.
+
+    Follows the centre of each layer's receptive field through the conv stack (with its
+    padding) and the two 4x4/2 transposed convs: output pixel q is centred on image
+    position a + b * q (b = aux_downsize, config-checked), and target cell t (the
+    image's pixels [t * f, (t + 1) * f)) on t * f + f / 2. The offset puts each cell on
+    the output pixel nearest to it."""
+    a, b = 0.5, 1.0  # the image's pixel x is centred on x + 0.5
+    sizes = cfg.conv_sizes(image_size)
+    for i, (k, s) in enumerate(zip(cfg.conv_kernels, cfg.conv_strides)):
+        if cfg.conv_padding == "valid":
+            before = 0
+        else:
+            before = k - s if i == 0 else _same_pad_before(sizes[i], k, s)
+        a, b = a + b * ((k - 1) / 2 - before), b * s
+    for _ in range(2):  # output pixel m of a transposed conv gathers input pixels around (m - 3/2) / 2
+        a, b = a - b * 3 / 4, b / 2
+    return math.floor((aux_downsize / 2 - a) / b + 0.5)
+
+
+class TransposedVNHeads(nn.Module):
+    """Depth / observation segmentation / target segmentation heads on conv4, layout
+    "transposed" (`agent.vision_heads`).
+
+    Each head is a 4x4/2 transposed conv (no padding) to HIDDEN channels, ReLU, and a
+    4x4/2 transposed conv to its outputs: an n x n conv4 map becomes 4n + 6 pixels wide,
+    at a quarter of conv4's stride in the image. Of that map the heads return the
+    `size` x `size` window starting at `offset` (`transposed_heads_offset`), which
+    aligns the output pixels with the target cells; where the window leaves the map
+    (rows and columns of the image that conv4 does not see, e.g. with valid padding) its
+    pixels repeat the map's nearest edge pixel, where it is larger than needed the rest
+    is cropped. The first layers of the requested heads run as one transposed conv with
+    their kernels side by side.
+    """
+
+    outputs: dict  # head -> output channels
+    size: int
+    offset: int
+    kernel_init: Any = nn.initializers.lecun_normal()
+    HIDDEN = 16
+    HEADS = ("depth", "segmentation", "target_segmentation")
+
+    @nn.compact
+    def __call__(self, x, heads: tuple):
+        c_in, hid = x.shape[-1], self.HIDDEN
+        k1 = {h: self.param(f"{h}_deconv1_kernel", self.kernel_init, (4, 4, c_in, hid)) for h in self.HEADS}
+        b1 = {h: self.param(f"{h}_deconv1_bias", nn.initializers.zeros, (hid,)) for h in self.HEADS}
+        k2 = {h: self.param(f"{h}_deconv2_kernel", self.kernel_init, (4, 4, hid, self.outputs[h])) for h in self.HEADS}
+        b2 = {h: self.param(f"{h}_deconv2_bias", nn.initializers.zeros, (self.outputs[h],)) for h in self.HEADS}
+        if not heads:
+            return {}
+        y = conv_transpose(x, jnp.concatenate([k1[h] for h in heads], axis=-1), 2)
+        y = nn.relu(y + jnp.concatenate([b1[h] for h in heads]))
+        out = {}
+        for i, h in enumerate(heads):
+            z = conv_transpose(y[..., i * hid : (i + 1) * hid], k2[h], 2) + b2[h]
+            out[h] = self._window(z)
+        return out
+
+    def _window(self, z):
+        n, start, end = z.shape[1], self.offset, self.offset + self.size
+        before, after = max(0, -start), max(0, end - n)
+        if before or after:
+            z = jnp.pad(z, ((0, 0), (before, after), (before, after), (0, 0)), mode="edge")
+        return z[:, start + before : end + before, start + before : end + before]
 
 
 Params = Any  # the network's parameter pytree
@@ -346,3 +518,7 @@ def apply_flat(fn, x, lead: int = 2):
     y = fn(x.reshape((-1,) + x.shape[lead:]))
     return jax.tree_util.tree_map(lambda a: a.reshape(shape + a.shape[1:]), y)
 
+
+def num_params(params: Params) -> int:
+    """Number of scalars in a parameter pytree."""
+    return sum(int(x.size) for x in jax.tree_util.tree_leaves(params))
