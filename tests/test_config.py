@@ -358,6 +358,14 @@ def test_missing_second_file(tmp_path):
     assert str(missing) in str(ei.value)
 
 
+def test_authors_network_preset_lists_only_agent_keys():
+    preset = Path(__file__).resolve().parents[1] / "configs" / "presets" / "authors_network.yaml"
+    assert list(yaml.safe_load(preset.read_text())) == ["agent"]
+    quickstart = DEFAULT_YAML.parent / "quickstart.yaml"
+    cfg = load_config([quickstart, preset], ["env.render.image_size=48"])
+    assert cfg.agent.conv_kernels == (7, 4, 4, 1) and cfg.env.scene.kind == "room"
+
+
 # ------------------------------------------------------------------ save and load
 
 

@@ -1,0 +1,350 @@
+"""The configurable network: the default one unchanged, the preset of
+configs/presets/authors_network.yaml (shapes, parameter count, initialisation, one
+update), the conv1 and transposed-conv building blocks against numpy, the alignment of
+the transposed depth / segmentation heads with their targets, and the config errors of
+impossible conv stacks.
+
+The default network's reference values (tests/data/default_network_tiny.json) were
+written by the network code before the conv stack became configurable, for
+tests/tiny.py's configuration, seed 3 and 7 actions.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from a2catvn_jax.agent import networks
+from a2catvn_jax.agent import update as update_lib
+from a2catvn_jax.config import ConfigError, load_config
+from a2catvn_jax.env import NavEnv
+from tiny import TINY_LEARNER
+
+ROOT = Path(__file__).resolve().parents[1]
+PRESET = ROOT / "configs" / "presets" / "authors_network.yaml"
+REFERENCE = Path(__file__).resolve().parent / "data" / "default_network_tiny.json"
+ACTIONS = 8
+
+
+def _preset(size: int, *extra: str):
+    return load_config(PRESET, [f"env.render.image_size={size}", *extra])
+
+
+def _shapes(net, size: int) -> dict:
+    """Shapes of every function's outputs for 2 frames (traced, not run)."""
+    params = jax.eval_shape(net.init, jax.random.PRNGKey(0))
+    img = jax.ShapeDtypeStruct((2, size, size, 3), jnp.uint8)
+    target = jax.eval_shape(net.target_stream, params, img)
+    conv4, feats = jax.eval_shape(net.encode, params, img, target)
+    carry = net.initial_carry(2)
+    _, core = jax.eval_shape(net.core, params, carry, feats, jax.ShapeDtypeStruct((2,), jnp.int32),
+                             jax.ShapeDtypeStruct((2,), jnp.float32))
+    frames = jax.ShapeDtypeStruct((2, networks.RP_FRAMES) + conv4.shape[1:], jnp.float32)
+    heads = jax.eval_shape(net.vn_heads, params, conv4)
+    return {"target": target.shape, "conv4": conv4.shape, "features": feats.shape, "core": core.shape,
+            "pixel_control": jax.eval_shape(net.pixel_control, params, core).shape,
+            "reward_prediction": jax.eval_shape(net.reward_prediction, params, frames).shape,
+            **{h: v.shape for h, v in heads.items()}}
+
+
+# -- the default network ----------------------------------------------------------------------
+
+
+def test_default_network_is_unchanged():
+    """Parameter names, shapes and initial values, and the outputs for fixed inputs, of
+    tests/tiny.py's network are those the network had before its conv stack became configurable."""
+    want = json.loads(REFERENCE.read_text())
+    cfg = load_config(None, TINY_LEARNER)
+    net = networks.make_networks(cfg, 7)
+    params = net.init(jax.random.PRNGKey(3))
+    leaves = {jax.tree_util.keystr(p): np.asarray(x, np.float64)
+              for p, x in jax.tree_util.tree_flatten_with_path(params)[0]}
+    assert list(leaves) == list(want["params"])
+    size = cfg.env.render.image_size
+    rng = np.random.default_rng(0)
+    img = jnp.asarray(rng.integers(0, 256, (2, size, size, 3), dtype=np.uint8))
+    target = jnp.asarray(rng.integers(0, 256, (2, size, size, 3), dtype=np.uint8))
+    outputs = net.module.apply(params, img, target, jnp.array([1, 2]), jnp.array([0.5, -2.0]))
+    assert set(outputs) == set(want["outputs"])
+    got = {**{("params", k): v for k, v in leaves.items()},
+           **{("outputs", k): np.asarray(v, np.float64) for k, v in outputs.items()}}
+    for (section, name), x in got.items():
+        ref = want[section][name]
+        assert list(x.shape) == ref["shape"], name
+        np.testing.assert_allclose([x.sum(), np.abs(x).sum()], [ref["sum"], ref["abs_sum"]], rtol=1e-5, atol=1e-6,
+                                   err_msg=name)
+        np.testing.assert_allclose(x.ravel()[:3], ref["first"], rtol=1e-5, atol=1e-7, err_msg=name)
+
+
+def test_default_config_is_the_previous_network():
+    agent = load_config(None).agent
+    assert (agent.conv_kernels, agent.conv_strides, agent.conv_padding) == ((8, 4, 3, 3), (4, 2, 1, 1), "same")
+    assert (agent.vision_heads, agent.init) == ("upsample", "lecun")
+
+
+# -- the authors' network: shapes and size ------------------------------------------------------
+
+
+# image size -> (conv1, conv2, conv3 = conv4 sides), worked out from the kernels and strides
+# (7/4, 4/2, 4/2, 1/1): valid n -> (n - k) // s + 1; same (32 px) n -> ceil(n / s).
+CONV_SIDES = {172: (42, 20, 9), 84: (20, 9, 3), 48: (11, 4, 1), 32: (8, 4, 2)}
+
+
+@pytest.mark.parametrize("size", [32, 48, 84, 172])
+def test_authors_preset_shapes(size):
+    extra = ["agent.conv_padding=same"] if size == 32 else []  # 32 px is below valid padding's minimum of 43
+    cfg = _preset(size, *extra)
+    s1, s2, s4 = CONV_SIDES[size]
+    assert cfg.agent.conv_sizes(size) == [size, s1, s2, s4, s4]
+    shapes = _shapes(networks.make_networks(cfg, ACTIONS), size)
+    aux, grid = size // cfg.train.aux_downsize, size // cfg.train.pixel_control_cell
+    assert shapes == {
+        "target": (2, s2, s2, 32), "conv4": (2, s4, s4, 32), "features": (2, 512), "core": (2, 512),
+        "pixel_control": (2, grid, grid, ACTIONS), "reward_prediction": (2, 3),
+        "depth": (2, aux, aux), "segmentation": (2, aux, aux, 3), "target_segmentation": (2, aux, aux, 3)}
+
+
+def test_authors_preset_needs_43_pixels_with_valid_padding():
+    with pytest.raises(ConfigError) as ei:
+        _preset(32)
+    msg = str(ei.value)
+    assert msg.startswith("env.render.image_size: 32 is too small")
+    assert "conv3 (4x4/2) gets 2x2" in msg and "32 -> 7 -> 2" in msg and "at least 43" in msg
+    assert "agent.conv_padding=same" in msg
+    _preset(43)
+
+
+def test_authors_network_parameter_count_at_84():
+    """Counted by hand: kernels + biases of every layer, 8 actions, the heads of this package."""
+    conv1 = 7 * 7 * 3 * 32 + 32  # shared by observation and target
+    conv2 = 4 * 4 * 32 * 32 + 32  # shared
+    conv3 = 4 * 4 * 64 * 64 + 64  # on the 64 concatenated channels
+    conv4 = 1 * 1 * 64 * 32 + 32
+    dense = 3 * 3 * 32 * 512 + 512  # conv4 is 3x3 at 84 px
+    lstm = 4 * ((512 + ACTIONS + 1) * 512 + 512 * 512 + 512)  # inputs: features, one-hot action, reward
+    policy, value = 512 * ACTIONS + ACTIONS, 512 + 1
+    half = math.ceil(84 // 4 / 2)  # pixel control: dense to a half-resolution grid, then x2 upsampling
+    pixel_control = (512 * half * half * 32 + half * half * 32) + (2 * 2 * 32 * 4 + 4) + (2 * 2 * 32 * 4 * ACTIONS + 4 * ACTIONS)
+    reward_prediction = 3 * 3 * 3 * 32 * 3 + 3  # conv4 of 3 frames -> 3 classes
+    vision = 3 * (4 * 4 * 32 * 16 + 16) + (4 * 4 * 16 * 1 + 1) + 2 * (4 * 4 * 16 * 3 + 3)  # transposed convs
+    want = conv1 + conv2 + conv3 + conv4 + dense + lstm + policy + value + pixel_control + reward_prediction + vision
+    params = jax.eval_shape(networks.make_networks(_preset(84), ACTIONS).init, jax.random.PRNGKey(0))
+    assert networks.num_params(params) == want == 4_379_047
+
+
+# -- the authors' network: initialisation --------------------------------------------------------
+
+
+def _bound(path: str, kernel: np.ndarray) -> float:
+    if "deconv" in path:  # transposed conv [k, k, in, out]: fan_in = k * k * out
+        return 1 / math.sqrt(kernel.shape[0] * kernel.shape[1] * kernel.shape[-1])
+    return 1 / math.sqrt(math.prod(kernel.shape[:-1]))
+
+
+def test_uniform_fan_in_initialisation():
+    params = networks.make_networks(_preset(48), ACTIONS).init(jax.random.PRNGKey(1))["params"]
+    flat = {jax.tree_util.keystr(p): np.asarray(x, np.float64) for p, x in jax.tree_util.tree_flatten_with_path(params)[0]}
+    lstm = {k: v for k, v in flat.items() if "'lstm'" in k}
+    checked = 0
+    for path, w in flat.items():
+        if path.endswith("bias']"):
+            assert np.all(w == 0), path
+            continue
+        if path in lstm:
+            continue
+        bound = _bound(path, w)
+        assert np.max(np.abs(w)) <= bound, path
+        if w.size >= 2000:  # uniform in [-bound, bound]: mean 0, std bound / sqrt(3), |w| < bound / 2 half the time
+            assert abs(w.mean()) < 0.1 * bound, path
+            assert abs(w.std() / (bound / math.sqrt(3)) - 1) < 0.05, path
+            assert abs(np.mean(np.abs(w) < bound / 2) - 0.5) < 0.05, path
+            assert np.max(np.abs(w)) > 0.95 * bound, path
+        checked += 1
+    # conv1-4, dense, policy, value, pixel control (dense, 2 upsamplings), reward prediction, 3 heads x 2
+    assert checked == 4 + 1 + 1 + 1 + 3 + 1 + 6
+    # LSTM: input kernels Glorot-uniform over the four gates ([in, 4 * 512]); the recurrent
+    # kernels of the four gates side by side [512, 4 * 512] have orthonormal rows.
+    inputs = np.concatenate([lstm[f"['lstm']['i{g}']['kernel']"] for g in "ifgo"], axis=1)
+    glorot = math.sqrt(6 / (inputs.shape[0] + inputs.shape[1]))
+    assert np.max(np.abs(inputs)) <= glorot and np.max(np.abs(inputs)) > 0.95 * glorot
+    recurrent = np.concatenate([lstm[f"['lstm']['h{g}']['kernel']"] for g in "ifgo"], axis=1)
+    np.testing.assert_allclose(recurrent @ recurrent.T, np.eye(512), atol=1e-4)
+
+
+# -- one update --------------------------------------------------------------------------------
+
+
+def test_one_update_with_the_preset():
+    """The tiny learner (small channels) with the preset's kernels, strides, padding, heads
+    and initialisation, at 48 px."""
+    cfg = load_config(PRESET, TINY_LEARNER + ["env.render.image_size=48", "env.scene.num_scenes=1",
+                                              "env.scene.grid=[1,1]"])
+    assert cfg.agent.vision_heads == "transposed" and cfg.agent.conv_padding == "valid"
+    env = NavEnv(cfg.env)
+    fns = update_lib.make_update(env, networks.make_networks(cfg, env.num_actions), cfg)
+    ts = fns.init(jax.random.PRNGKey(0))
+    before = jax.tree_util.tree_map(np.asarray, ts.params)
+    ts, metrics = fns.update(ts)
+    metrics = jax.device_get(metrics)
+    assert {"loss/depth", "loss/segmentation", "loss/target_segmentation", "loss/pixel_control",
+            "loss/reward_prediction", "loss/total"} <= set(metrics)
+    assert all(np.all(np.isfinite(v)) for v in metrics.values())
+    moved = jax.tree_util.tree_map(lambda a, b: bool(np.any(a != np.asarray(b))), before, ts.params)
+    assert all(moved["params"][k] for k in ("conv1", "conv4", "vn"))
+
+
+# -- building blocks ---------------------------------------------------------------------------
+
+
+def _conv1_numpy(image, kernel, bias, k, s, padding):
+    """conv1's definition: pad k - s at the top/left and up to a multiple of s at the
+    bottom/right ("same"), or nothing ("valid"); windows every s pixels."""
+    x = np.asarray(image, np.float64) / 255.0
+    n = x.shape[1]
+    if padding == "same":
+        out = -(-n // s)
+        x = np.pad(x, ((0, 0), (k - s, out * s - n), (k - s, out * s - n), (0, 0)))
+    else:
+        out = (n - k) // s + 1
+    y = np.zeros((x.shape[0], out, out, kernel.shape[-1]))
+    for i in range(out):
+        for j in range(out):
+            y[:, i, j] = np.einsum("nuvc,uvcf->nf", x[:, s * i : s * i + k, s * j : s * j + k], kernel)
+    return y + bias
+
+
+@pytest.mark.parametrize("k,s,padding,size", [(8, 4, "valid", 30), (8, 4, "valid", 32), (4, 2, "same", 17),
+                                              (6, 2, "valid", 19), (7, 4, "same", 21), (7, 4, "valid", 43)])
+def test_conv1_kernels_strides_and_padding(k, s, padding, size):
+    rng = np.random.default_rng(k * 100 + size)
+    image = jnp.asarray(rng.integers(0, 256, size=(2, size, size, 3), dtype=np.uint8))
+    module = networks.Conv1(5, False, k, s, padding)
+    params = module.init(jax.random.PRNGKey(0), image)
+    params = {"params": dict(params["params"], bias=jnp.asarray(rng.normal(size=5).astype(np.float32)))}
+    plain = np.asarray(module.apply(params, image))
+    p = params["params"]
+    ref = _conv1_numpy(image, np.asarray(p["kernel"], np.float64), np.asarray(p["bias"]), k, s, padding)
+    assert plain.shape == ref.shape
+    assert np.max(np.abs(plain - ref)) < 1e-4
+    if k % s == 0:
+        fast = np.asarray(networks.Conv1(5, True, k, s, padding).apply(params, image))
+        assert np.max(np.abs(fast - plain)) < 1e-4
+
+
+def test_conv_transpose_against_numpy():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(2, 3, 4, 5)).astype(np.float32)
+    kernel = rng.normal(size=(4, 4, 5, 6)).astype(np.float32)
+    y = np.asarray(networks.conv_transpose(jnp.asarray(x), jnp.asarray(kernel), 2))
+    ref = np.zeros((2, 8, 10, 6))
+    for i in range(3):
+        for j in range(4):
+            ref[:, 2 * i : 2 * i + 4, 2 * j : 2 * j + 4] += np.einsum("nc,uvcf->nuvf", x[:, i, j], kernel)
+    assert y.shape == ref.shape
+    np.testing.assert_allclose(y, ref, atol=1e-4)
+
+
+@pytest.mark.parametrize("offset,size", [(0, 21), (3, 8), (-2, 14), (2, 6)])
+def test_transposed_heads_window(offset, size):
+    """The window of the 4n + 6 map: cropped where it fits, the nearest edge pixel repeated where it does not."""
+    heads = networks.TransposedVNHeads({"depth": 1, "segmentation": 3, "target_segmentation": 3}, size, offset)
+    x = jnp.asarray(np.random.default_rng(1).normal(size=(2, 3, 3, 8)).astype(np.float32))
+    params = heads.init(jax.random.PRNGKey(0), x, ("depth",))
+    out = np.asarray(heads.apply(params, x, ("depth", "segmentation"))["segmentation"])
+    p = params["params"]
+    hidden = jax.nn.relu(networks.conv_transpose(x, p["segmentation_deconv1_kernel"], 2) + p["segmentation_deconv1_bias"])
+    full = np.asarray(networks.conv_transpose(hidden, p["segmentation_deconv2_kernel"], 2) + p["segmentation_deconv2_bias"])
+    assert full.shape[1] == 18
+    rows = np.clip(np.arange(offset, offset + size), 0, 17)
+    np.testing.assert_allclose(out, full[:, rows][:, :, rows], atol=1e-6)
+
+
+def _geometric_params(params):
+    """Every conv kernel an average over its window and input channels, every transposed
+    conv kernel the bilinear x2 interpolation kernel (1/4, 3/4, 3/4, 1/4 along each axis),
+    biases 0: each layer then passes on where in the image its input pixels lie."""
+    bilinear = np.array([0.25, 0.75, 0.75, 0.25])
+
+    def one(path, x):
+        if x.ndim == 1:
+            return jnp.zeros_like(x)
+        if "deconv" in jax.tree_util.keystr(path):
+            return jnp.broadcast_to(jnp.asarray(np.outer(bilinear, bilinear))[:, :, None, None] / x.shape[2], x.shape)
+        return jnp.full_like(x, 1 / math.prod(x.shape[:-1]))
+
+    return jax.tree_util.tree_map_with_path(one, params)
+
+
+@pytest.mark.parametrize("size,padding", [(84, "valid"), (172, "valid"), (84, "same"), (172, "same")])
+def test_transposed_heads_are_aligned_with_their_targets(size, padding):
+    """With averaging conv kernels and bilinear transposed-conv kernels, the gradient of a
+    depth cell with respect to the observation is centred where the cell's output pixel
+    lies in the image; for cells away from the maps' borders (no padding or missing
+    input in their receptive field) that centre must be within half a cell of the target
+    cell's centre."""
+    cfg = _preset(size, f"agent.conv_padding={padding}", "agent.conv_channels=[4,4,4,4]", "agent.dense_size=8",
+                  "agent.core_size=8")
+    net = networks.make_networks(cfg, ACTIONS)
+    params = _geometric_params(net.init(jax.random.PRNGKey(0)))
+    f, cells = cfg.train.aux_downsize, size // cfg.train.aux_downsize
+    target = net.target_stream(params, jnp.ones((1, size, size, 3), jnp.uint8))
+
+    @jax.jit
+    def grad(t):
+        def cell(image):
+            conv4, _ = net.encode(params, image, target)
+            return net.vn_heads(params, conv4, ("depth",))["depth"][0, t, t]
+
+        return jax.grad(cell)(jnp.ones((1, size, size, 3)))
+
+    for t in (cells // 2 - 2, cells // 2, cells // 2 + 2):
+        g = np.asarray(grad(t))[0].sum(axis=(1, 2))
+        centroid = (g * (np.arange(size) + 0.5)).sum() / g.sum()
+        assert abs(centroid - (t * f + f / 2)) <= f / 2, (t, centroid)
+
+
+def test_transposed_heads_offsets():
+    """Worked out by hand from the layers' padding (docs: `transposed_heads_offset`).
+
+    valid, any size: conv1 pixel i is centred on image position 4i + 3.5, conv2 on 8i + 9.5,
+    conv3 and conv4 on 16i + 21.5; the transposed convs' output pixel q on 4q + 3.5: cell t
+    (centre 4t + 2) takes q = t. same at 32 px: conv1 (3 pixels of padding before) 4i + 0.5,
+    conv2 (1 before) 8i + 2.5, conv3 (1 before) 16i + 6.5, output 4q - 11.5: cell t takes q = t + 3."""
+    for size in (43, 84, 172):
+        assert networks.transposed_heads_offset(_preset(size).agent, size, 4) == 0
+    assert networks.transposed_heads_offset(_preset(32, "agent.conv_padding=same").agent, 32, 4) == 3
+
+
+# -- configuration errors -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("overrides,fragment", [
+    (["agent.conv_kernels=[3,4,3,3]"], "agent.conv_kernels: conv1's kernel 3 is smaller than its stride 4"),
+    (["agent.conv_strides=[4,2,4,1]"], "agent.conv_kernels: conv3's kernel 3 is smaller than its stride 4"),
+    (["agent.space_to_depth=true", "agent.conv_kernels=[7,4,3,3]"],
+     "agent.space_to_depth: needs conv1's kernel to be a multiple of its stride, got kernel 7"),
+    (["agent.conv_padding=valid", "env.render.image_size=40"],
+     "env.render.image_size: 40 is too small for the conv stack with agent.conv_padding=valid: conv4 (3x3/1) gets 2x2"),
+    (["agent.vision_heads=transposed"], "agent.vision_heads: 'transposed' (two stride-2 transposed convs) brings "
+                                        "conv4's maps from stride 8"),
+    (["agent.conv_kernels=[0,4,3,3]"], "agent.conv_kernels[0]: must be >= 1"),
+    (["agent.conv_padding=full"], "agent.conv_padding: invalid value 'full'"),
+    (["agent.init=xavier"], "agent.init: invalid value 'xavier'"),
+])
+def test_bad_conv_stacks_are_config_errors(overrides, fragment):
+    with pytest.raises(ConfigError) as ei:
+        load_config(None, overrides)
+    assert str(ei.value).startswith(fragment), str(ei.value)
+    assert "\n" not in str(ei.value)
+
+
+def test_transposed_heads_need_matching_aux_downsize():
+    with pytest.raises(ConfigError, match=r"to stride 4, which must equal train.aux_downsize \(2\)"):
+        _preset(84, "train.aux_downsize=2")
+    load_config(None, ["agent.vision_heads=transposed", "agent.conv_strides=[4,2,2,1]", "agent.conv_kernels=[8,4,3,3]"])
