@@ -81,9 +81,9 @@ def space_to_depth(x, block: int):
 
 def fan_in_uniform(transposed: bool = False):
     """Initialiser of kernels [..., in, out] uniform in +-1/sqrt(fan_in). fan_in is the
-    kernel area times the input channels; for a transposed conv, the kernel area times
-    the output channels (each output pixel is a sum over its output-channel slice of the
-    kernel, the way PyTorch counts it for its transposed convolutions)."""
+    kernel area times the input channels; for a transposed conv (`transposed`), the
+    kernel area times the output channels, the count PyTorch's initialisers take for a
+    transposed convolution's weight."""
 
     def init(key, shape, dtype=jnp.float32):
         fan_in = math.prod(shape[:-2]) * (shape[-1] if transposed else shape[-2])
@@ -147,7 +147,7 @@ class Conv1(nn.Module):
         if self.padding == "same":
             hp, wp = -(-h // s) * s, -(-w // s) * s
             x = jnp.pad(x, ((0, 0), (k - s, hp - h), (k - s, wp - w), (0, 0)))
-        else:  # the rows and columns the windows reach: a multiple of the stride when k is
+        else:  # only the rows and columns the windows reach (a multiple of the stride when the kernel is)
             oh, ow = (h - k) // s + 1, (w - k) // s + 1
             x = x[:, : (oh - 1) * s + k, : (ow - 1) * s + k]
         dims = ("NHWC", "HWIO", "NHWC")
@@ -353,13 +353,24 @@ class VNHeads(nn.Module):
 
 
 def conv_transpose(x, kernel, stride: int):
-    """Transposed convolution without padding of x [N, n, n, C] by kernel [k, k, C, F]:
-    input pixel l adds x[l] * kernel[t] to output pixel stride * l + t (t < k), so the
-    output is (n - 1) * stride + k pixels wide."""
-    flipped = kernel[::-1, ::-1]
-    k = kernel.shape[0]
-    return jax.lax.conv_general_dilated(x, flipped, (1, 1), ((k - 1, k - 1), (k - 1, k - 1)),
-                                        lhs_dilation=(stride, stride), dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    """Transposed convolution without padding of x [N, h, w, C] by kernel [k, k, C, F]
+    (k a multiple of the stride): input pixel l adds x[l] * kernel[t] to output pixel
+    stride * l + t (t < k), so the output is (h - 1) * stride + k pixels high.
+
+    Computed as one matrix product (every input pixel's k x k x F contribution) and an
+    overlap-add: with m = k / stride, output block j (pixels stride * j + r, r < stride)
+    sums the contributions of input pixels j - a (a < m) at taps stride * a + r. On XLA's
+    CPU backend this runs faster than a convolution of the stride-dilated input or a
+    sub-pixel convolution (docs/benchmarks.md)."""
+    k, s = kernel.shape[0], stride
+    m, c, f = k // s, kernel.shape[2], kernel.shape[3]
+    n, h, w, _ = x.shape
+    z = jnp.dot(x, kernel.transpose(2, 0, 1, 3).reshape(c, k * k * f)).reshape(n, h, w, m, s, m, s, f)
+    y = 0.0
+    for a in range(m):
+        for b in range(m):
+            y = y + jnp.pad(z[:, :, :, a, :, b], ((0, 0), (a, m - 1 - a), (b, m - 1 - b), (0, 0), (0, 0), (0, 0)))
+    return y.transpose(0, 1, 3, 2, 4, 5).reshape(n, (h + m - 1) * s, (w + m - 1) * s, f)
 
 
 def _same_pad_before(n: int, kernel: int, stride: int) -> int:
@@ -371,11 +382,13 @@ def _same_pad_before(n: int, kernel: int, stride: int) -> int:
 def transposed_heads_offset(cfg: AgentConfig, image_size: int, aux_downsize: int) -> int:
     """Where the `TransposedVNHeads` output's window of auxiliary-target cells starts.
 
-    Follows the centre of each layer's receptive field through the conv stack (with its
-    padding) and the two 4x4/2 transposed convs: output pixel q is centred on image
-    position a + b * q (b = aux_downsize, config-checked), and target cell t (the
-    image's pixels [t * f, (t + 1) * f)) on t * f + f / 2. The offset puts each cell on
-    the output pixel nearest to it."""
+    Follows where each layer's pixels lie in the image: a conv's output pixel at the
+    centre of its window (padding included), output pixel m of a 4x4/2 transposed conv
+    at input position (m - 3/2) / 2 (where bilinear interpolation puts it). After the
+    conv stack and the two transposed convs, output pixel q lies at image position
+    a + b * q with b = aux_downsize (config-checked); target cell t (the image's pixels
+    [t * b, (t + 1) * b)) is centred on t * b + b / 2. The offset puts each cell on the
+    output pixel nearest to it."""
     a, b = 0.5, 1.0  # the image's pixel x is centred on x + 0.5
     sizes = cfg.conv_sizes(image_size)
     for i, (k, s) in enumerate(zip(cfg.conv_kernels, cfg.conv_strides)):
@@ -384,7 +397,7 @@ def transposed_heads_offset(cfg: AgentConfig, image_size: int, aux_downsize: int
         else:
             before = k - s if i == 0 else _same_pad_before(sizes[i], k, s)
         a, b = a + b * ((k - 1) / 2 - before), b * s
-    for _ in range(2):  # output pixel m of a transposed conv gathers input pixels around (m - 3/2) / 2
+    for _ in range(2):  # the transposed convs' output pixel m at input position (m - 3/2) / 2
         a, b = a - b * 3 / 4, b / 2
     return math.floor((aux_downsize / 2 - a) / b + 0.5)
 
