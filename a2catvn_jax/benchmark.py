@@ -3,6 +3,7 @@
     python -m a2catvn_jax.benchmark env [--batch-sizes 16 64 256 1024] [--resolutions 64 84 174]
     python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
+        [--networks default configs/presets/authors_network.yaml]
 
 `env`: frames/s of `NavEnv.step` (one frame = one agent step with its RGB, depth and
 segmentation rendered) in a multi-room house, for each batch size and resolution,
@@ -19,7 +20,9 @@ rollout of random actions timed alone).
 `network`: forward+backward frames/s of the conv base with the depth and segmentation
 heads on `--frames` (observation, target) pairs: as the update runs it (the target
 stream once per distinct target), with both streams computed for every frame, and
-the same network in PyTorch (`pip install torch==2.13.0`), with the ratio.
+the same network in PyTorch (`pip install torch==2.13.0`), with the ratio. With
+`--networks`, each listed network in turn: `default` (the built-in one, compared with
+PyTorch) or a config file of agent keys such as `configs/presets/authors_network.yaml`.
 """
 
 from __future__ import annotations
@@ -57,6 +60,9 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=320, help="network: (observation, target) pairs per pass")
     parser.add_argument("--targets", type=int, default=16, help="network: distinct targets among them")
     parser.add_argument("--repeats", type=int, default=5, help="network: timed passes")
+    parser.add_argument("--networks", nargs="+", metavar="NET", default=["default"],
+                        help="network: the networks to time, side by side: default (the built-in network) or config "
+                             "files of agent keys, e.g. --networks default configs/presets/authors_network.yaml")
     cli.add_config_args(parser, config=False, help="configuration changes applied to every benchmarked setting")
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args(argv)
@@ -73,17 +79,24 @@ def main(argv=None) -> None:
                 print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
                       f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
         elif args.what == "network":
-            r = bench_network(args.resolution, args.frames, args.targets, args.repeats, overrides)
-            rows = [r]
-            print(f"forward+backward, {args.frames} frames at {args.resolution}x{args.resolution}, frames/s:")
-            print(f"  JAX, target stream once per distinct target ({args.targets}): {r['jax_fps']:.0f}")
-            print(f"  JAX, both streams every frame:                      {r['jax_per_frame_fps']:.0f}")
-            if r["torch_fps"] is None:
-                print("  PyTorch: not installed (pip install torch==2.13.0)")
-            else:
-                print(f"  PyTorch {__import__('torch').__version__}, both streams every frame:      {r['torch_fps']:.0f}")
-                print(f"  ratio JAX as trained / PyTorch: {r['jax_fps'] / r['torch_fps']:.2f}; "
-                      f"like for like: {r['jax_per_frame_fps'] / r['torch_fps']:.2f}")
+            rows = []
+            for name in args.networks:
+                default = name == "default"
+                r = bench_network(args.resolution, args.frames, args.targets, args.repeats, overrides,
+                                  config=None if default else name, torch=default)
+                rows.append({"network": name, **r})
+                print(f"{name}: {r['params']:,} parameters in the whole network; forward+backward, {args.frames} frames at "
+                      f"{args.resolution}x{args.resolution}, frames/s:")
+                print(f"  JAX, target stream once per distinct target ({args.targets}): {r['jax_fps']:.0f}")
+                print(f"  JAX, both streams every frame:                      {r['jax_per_frame_fps']:.0f}")
+                if not default:
+                    continue
+                if r["torch_fps"] is None:
+                    print("  PyTorch: not installed (pip install torch==2.13.0)")
+                else:
+                    print(f"  PyTorch {__import__('torch').__version__}, both streams every frame:      {r['torch_fps']:.0f}")
+                    print(f"  ratio JAX as trained / PyTorch: {r['jax_fps'] / r['torch_fps']:.2f}; "
+                          f"like for like: {r['jax_per_frame_fps'] / r['torch_fps']:.2f}")
         else:
             rows = _bench_env_table(args, overrides)
         if args.json:

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from a2catvn_jax.agent.networks import make_networks
+from a2catvn_jax.agent.networks import make_networks, num_params
 from a2catvn_jax.agent.update import frames_per_update, make_update
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import NavEnv
@@ -111,11 +111,13 @@ def bench_train(name: str, overrides, updates: int) -> dict:
             "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps}
 
 
-def bench_network(resolution: int, frames: int, targets: int, repeats: int, overrides=()) -> dict:
+def bench_network(resolution: int, frames: int, targets: int, repeats: int, overrides=(), config=None,
+                  torch: bool = True) -> dict:
     """Forward+backward frames/s of the conv base and VN heads: JAX as trained, JAX with
-    both streams per frame, and PyTorch (None when torch is not installed). `overrides`
-    may set `agent.*` keys (e.g. agent.space_to_depth=true)."""
-    net = make_networks(load_config(None, [f"env.render.image_size={resolution}", *overrides]), 8)
+    both streams per frame, and PyTorch (None when torch is not installed or `torch` is
+    False; it is the default network). `config` (config files, e.g. a preset of agent
+    keys) and `overrides` may set `agent.*` keys (e.g. agent.space_to_depth=true)."""
+    net = make_networks(load_config(config, [f"env.render.image_size={resolution}", *overrides]), 8)
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
     rgb = jax.random.randint(k1, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
     target_rgb = jax.random.randint(k2, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
@@ -140,6 +142,8 @@ def bench_network(resolution: int, frames: int, targets: int, repeats: int, over
     shared = fps(rgb, target_rgb[:targets], jnp.arange(frames) % targets)
     per_frame = fps(rgb, target_rgb, jnp.arange(frames))
     try:
+        if not torch:
+            raise ImportError
         from a2catvn_jax.bench import torch_reference  # needs PyTorch
     except ImportError:
         torch_fps = None
@@ -150,5 +154,5 @@ def bench_network(resolution: int, frames: int, targets: int, repeats: int, over
         for _ in range(repeats):
             step()
         torch_fps = repeats * frames / (time.perf_counter() - t0)
-    return {"resolution": resolution, "frames": frames, "targets": targets, "jax_fps": shared,
-            "jax_per_frame_fps": per_frame, "torch_fps": torch_fps}
+    return {"resolution": resolution, "frames": frames, "targets": targets, "params": num_params(params),
+            "jax_fps": shared, "jax_per_frame_fps": per_frame, "torch_fps": torch_fps}
