@@ -21,12 +21,13 @@ from typing import Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from a2catvn_jax.env import rects
 from a2catvn_jax.env.navenv import NavEnv, State
 from a2catvn_jax.env.world import WorldArrays
 
-_TURN_PENALTY = 1e-3  # metres: a turn must beat the best move by more than this
+_TURN_PENALTY = 1e-3  # metres per turn: of equal ways, the one with fewer turns wins, and moves win over turns
 
 
 def oracle_actions(env: NavEnv, state: State, key, world: Optional[WorldArrays] = None):
@@ -56,16 +57,29 @@ def _act(env: NavEnv, w: WorldArrays, scene, goal, pose, key):
     ends = jax.vmap(lambda a: env.preview(scene, pose, a, w))(jnp.arange(A))
     translates = (moves[:, 0] != 0) | (moves[:, 1] != 0)
     turns = moves[:, 2] != 0
-    ahead = jax.vmap(lambda p: dist_at(env.preview(scene, p, forward, w)))(ends)
+    # A turn is worth the best move forward after turning that way 1 .. n times (n turns
+    # make half a circle); each further turn costs a little, turns walk no distance.
+    n = int(np.ceil(np.pi / np.min(np.abs(env.moves[:, 2][env.moves[:, 2] != 0]))))
+    k = jnp.arange(1, n + 1, dtype=jnp.float32)
+
+    def after_turns(rotation):
+        yaws = pose[2] + k * rotation
+        starts = jnp.concatenate([jnp.broadcast_to(pose[:2], (n, 2)), yaws[:, None],
+                                  jnp.broadcast_to(pose[3:], (n, 1))], -1)
+        ahead = jax.vmap(lambda p: dist_at(env.preview(scene, p, forward, w)))(starts) + k * _TURN_PENALTY
+        return jnp.min(ahead)
+
+    ahead = jax.vmap(after_turns)(moves[:, 2])
     # Where each action leads (a turn: the move forward after it) and the metres walked.
     reach = jnp.where(translates, jax.vmap(dist_at)(ends), jnp.where(turns, ahead, jnp.inf))
     walk = jnp.where(translates, jnp.hypot(moves[:, 0], moves[:, 1]), moves[forward, 0])
-    # Distance left plus metres walked beyond the progress made: near the goal the
-    # shortest move that arrives beats a longer one.
-    score = 2 * reach + walk + jnp.where(turns, _TURN_PENALTY, 0.0)
-    best = jnp.argmin(score)
+    # Distance left plus metres walked beyond the progress made: moves that walk
+    # across the way (sideways past it, or a short step) lose to turning and walking
+    # straight, and near the goal the shortest move that arrives beats a longer one.
     here = dist_at(pose)
-    stuck = ~(reach.min() < here)
+    score = jnp.where(reach < here, 2 * reach + walk, jnp.inf)  # only actions that make progress
+    best = jnp.argmin(score)
+    stuck = ~jnp.isfinite(score[best])
     travel = jnp.where(stuck, jax.random.randint(key, (), 0, A), best)
     # Where it should be: face the right way, then step forward.
     off = jnp.arctan2(jnp.sin(yaw_at(pose) - pose[2]), jnp.cos(yaw_at(pose) - pose[2]))
