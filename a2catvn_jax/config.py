@@ -298,6 +298,10 @@ class TrainConfig(_Section):
     replay_batch: Count = 16  # replay sequences per update (off-policy critic, pixel control, reward prediction)
     pixel_control_gamma: Fraction = 0.9
     pixel_control_cell: Count = 4
+    pixel_control_reward: Literal["luminance", "rgb"] = "luminance"  # pseudo-reward: change of luminance or of R, G, B
+    reward_prediction_loss: Literal["softmax", "sigmoid"] = "softmax"  # softmax CE (paper) or per-class sigmoid BCE
+    reward_prediction_zero_fraction: Fraction = 0.5  # expected share of reward windows that end with zero reward
+    reward_prediction_target: Literal["last_frame", "next_frame"] = "last_frame"  # the step whose reward is predicted
     aux_downsize: Count = 4  # depth / segmentation targets are downsized by this factor
     timeout_bootstrap: Bool = True  # a time-out bootstraps the returns from the critic; false: terminal (paper)
     loss_weights: LossWeights = field(default_factory=LossWeights)

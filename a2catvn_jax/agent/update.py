@@ -11,8 +11,8 @@ everything of one update inside `jax.jit`:
 3. compute the losses (`losses.py`): actor, critic and entropy on the rollout with
    returns bootstrapped at its end (paper eq. 1-3); off-policy critic and pixel
    control on sequences sampled from the replay buffer; reward prediction on replay
-   windows balanced between zero and non-zero final reward; depth, observation and
-   target segmentation on the rollout's frames;
+   windows with a set share (`train.reward_prediction_zero_fraction`) ending with zero
+   reward; depth, observation and target segmentation on the rollout's frames;
 4. sum them with the configured weights, clip the global gradient norm and apply
    RMSprop with the (linearly decaying) learning rate.
 
@@ -150,17 +150,19 @@ def replay_terms(cfg: Config, networks: Networks, params: Params, target_feats, 
                                                                        timeouts(cfg, seq))
         if w.pixel_control > 0:
             q = apply_flat(lambda x: networks.pixel_control(params, x), out)
-            pc = jax.vmap(losses.pixel_control_loss, in_axes=(1, 1, 1, 1, None, None))(
-                seq.rgb, seq.action, seq.done, q, tc.pixel_control_gamma, tc.pixel_control_cell
-            )
-            terms["pixel_control"] = jnp.mean(pc)
+            pc_loss = functools.partial(losses.pixel_control_loss, gamma=tc.pixel_control_gamma,
+                                        cell=tc.pixel_control_cell, reward=tc.pixel_control_reward)
+            terms["pixel_control"] = jnp.mean(jax.vmap(pc_loss, in_axes=1)(seq.rgb, seq.action, seq.done, q))
     if w.reward_prediction > 0:
         data = replay.data
-        win, reward = replay_lib.sample_reward_windows(replay, k_rp, n, RP_FRAMES, data.reward, data.reset)
-        flat = lambda x: x.reshape((n * RP_FRAMES,) + x.shape[2:])  # noqa: E731
+        # "next_frame": windows of RP_FRAMES + 1 steps in one episode, the head sees the first RP_FRAMES.
+        frames = RP_FRAMES + (tc.reward_prediction_target == "next_frame")
+        win, reward = replay_lib.sample_reward_windows(replay, k_rp, n, frames, data.reward, data.reset,
+                                                       tc.reward_prediction_zero_fraction)
+        flat = lambda x: x[:, :RP_FRAMES].reshape((n * RP_FRAMES,) + x.shape[2:])  # noqa: E731
         conv4, _ = networks.encode(params, flat(win.rgb), target_feats[flat(win.target)])
         logits = networks.reward_prediction(params, conv4.reshape((n, RP_FRAMES) + conv4.shape[1:]))
-        terms["reward_prediction"] = losses.reward_prediction_loss(logits, reward)
+        terms["reward_prediction"] = losses.reward_prediction_loss(logits, reward, tc.reward_prediction_loss)
     return terms
 
 
