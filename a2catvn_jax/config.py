@@ -302,6 +302,7 @@ class TrainConfig(_Section):
     reward_prediction_loss: Literal["softmax", "sigmoid"] = "softmax"  # softmax CE (paper) or per-class sigmoid BCE
     reward_prediction_zero_fraction: Fraction = 0.5  # expected share of reward windows that end with zero reward
     reward_prediction_target: Literal["last_frame", "next_frame"] = "last_frame"  # the step whose reward is predicted
+    replay_warmup: Bool = False  # fill the replay buffer before the first update (those frames are not counted)
     aux_downsize: Count = 4  # depth / segmentation targets are downsized by this factor
     timeout_bootstrap: Bool = True  # a time-out bootstraps the returns from the critic; false: terminal (paper)
     loss_weights: LossWeights = field(default_factory=LossWeights)

@@ -210,6 +210,7 @@ def test_from_dict_direct():
         ("env.scene.grid=3", "env.scene.grid", "expected a list of 2 integers"),
         ("env.scene.grid=[1, 2, 3]", "env.scene.grid", "expected a list of 2 integers"),
         ("env.scene.grid=[1, x]", "env.scene.grid[1]", "expected an integer"),
+        ("train.replay_warmup=yes", "train.replay_warmup", "expected true or false"),
         ("train.reward_prediction_zero_fraction=half", "train.reward_prediction_zero_fraction", "expected a number"),
     ],
 )

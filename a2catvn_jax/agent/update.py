@@ -18,7 +18,9 @@ everything of one update inside `jax.jit`:
 
 A loss whose weight is 0 is not traced at all, so plain A2C, A2C+UNREAL and A2CAT-VN
 are three configurations of this one code path; with no replay loss on there is no
-replay buffer either.
+replay buffer either. With `train.replay_warmup`, `init` fills the buffer with the
+initial policy's rollouts before the first update (`warmup`); those frames are not
+counted.
 
 The memory core's state is carried from one rollout to the next and cleared at the
 first step of every episode. With `train.curriculum` the environment's complexity tau
@@ -246,6 +248,28 @@ def collect(cfg: Config, env, networks: Networks, targets: Targets, ts: TrainSta
     return Batch(traj, truth_seq, ts.agent.carry, replay, k_loss, env_state, agent, stats, key, tau)
 
 
+def warmup_rollouts(cfg: Config) -> int:
+    """Rollouts `train.replay_warmup` collects before the first update: one fewer than the
+    buffer holds, so that the first update's own rollout fills it (0 when it is off or
+    there is no replay buffer)."""
+    if not (cfg.train.replay_warmup and uses_replay(cfg)):
+        return 0
+    return max(1, cfg.train.replay_size // cfg.train.rollout_length) - 1
+
+
+def warmup(cfg: Config, env, networks: Networks, targets: Targets, ts: TrainState) -> TrainState:
+    """`ts` after `warmup_rollouts(cfg)` rollouts of its policy written to the replay buffer:
+    the environments, the agent's memory, the buffer and the key move on; the parameters,
+    the optimiser state and the update count (so the frame count, the learning rate and
+    the curriculum) do not."""
+
+    def one(_, ts):
+        batch = collect(cfg, env, networks, targets, ts)
+        return ts.replace(env_state=batch.env_state, agent=batch.agent, replay=batch.replay, key=batch.key)
+
+    return jax.lax.fori_loop(0, warmup_rollouts(cfg), one, ts)
+
+
 def make_grad_norms(env, networks: Networks, cfg: Config) -> Callable:
     """A jitted diagnostic `grad_norms(TrainState) -> metrics`: the norm of the gradient of
     each weighted loss term (and of their sum) on the conv layers every head shares
@@ -296,7 +320,10 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
         env_state = env.reset(k_env, complexity=complexity(cfg, 0))
         agent = initial_agent(networks, B)
         replay = replay_lib.init(transition_example(cfg, B), agent.carry, replay_slots) if uses_replay(cfg) else None
-        return TrainState(params, optimizer.init(params), env_state, agent, replay, k_train, jnp.zeros((), jnp.int32))
+        ts = TrainState(params, optimizer.init(params), env_state, agent, replay, k_train, jnp.zeros((), jnp.int32))
+        if tc.replay_warmup and replay is not None:
+            ts = warmup(cfg, env, networks, targets, ts)
+        return ts
 
     def update(ts: TrainState):
         batch = collect(cfg, env, networks, targets, ts)
