@@ -327,6 +327,12 @@ class TrainConfig(_Section):
         if self.replay_size < self.rollout_length:
             yield k("replay_size"), (f"must hold at least one rollout ({k('rollout_length')} = "
                                      f"{self.rollout_length}), got {self.replay_size}")
+        # Reward prediction sees 3 frames (networks.RP_FRAMES); its windows lie inside one stored rollout.
+        window = 3 + (self.reward_prediction_target == "next_frame")
+        if self.loss_weights.reward_prediction > 0 and self.rollout_length < window:
+            yield k("rollout_length"), (f"reward prediction ({k('reward_prediction_target')}="
+                                        f"{self.reward_prediction_target}) needs windows of {window} steps inside one "
+                                        f"rollout: must be >= {window}, got {self.rollout_length}")
 
 
 @dataclass(frozen=True)

@@ -295,6 +295,11 @@ def test_cross_field_checks():
         load_config(None, ["env.goal=room", "env.scene.kind=maze"])
     assert load_config(None, ["env.goal=room"]).env.goal == "room"
 
+    with pytest.raises(ConfigError, match=r"^train\.rollout_length: reward prediction .* must be >= 4, got 3$"):
+        load_config(None, ["train.rollout_length=3", "train.replay_size=30", "train.reward_prediction_target=next_frame"])
+    load_config(None, ["train.rollout_length=3", "train.replay_size=30"])  # 3 frames fit
+    load_config(None, ["train.rollout_length=2", "train.replay_size=30", "train.loss_weights.reward_prediction=0"])
+
     with pytest.raises(ConfigError, match=r"env\.scene\.mjcf_path: required"):
         load_config(None, ["env.scene.kind=mjcf"])
     with pytest.raises(ConfigError, match=r"env\.scene\.mjcf_path: only allowed"):
