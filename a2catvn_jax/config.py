@@ -352,6 +352,11 @@ class TrainConfig(_Section):
     replay_batch: Count = 16  # replay sequences per update (off-policy critic, pixel control, reward prediction)
     pixel_control_gamma: Fraction = 0.9
     pixel_control_cell: Count = 4
+    pixel_control_reward: Literal["luminance", "rgb"] = "luminance"  # pseudo-reward: change of luminance or of R, G, B
+    reward_prediction_loss: Literal["softmax", "sigmoid"] = "softmax"  # softmax CE (paper) or per-class sigmoid BCE
+    reward_prediction_zero_fraction: Fraction = 0.5  # expected share of reward windows that end with zero reward
+    reward_prediction_target: Literal["last_frame", "next_frame"] = "last_frame"  # the step whose reward is predicted
+    replay_warmup: Bool = False  # fill the replay buffer before the first update (those frames are not counted)
     aux_downsize: Count = 4  # depth / segmentation targets are downsized by this factor
     timeout_bootstrap: Bool = True  # a time-out bootstraps the returns from the critic; false: terminal (paper)
     loss_weights: LossWeights = field(default_factory=LossWeights)
@@ -376,6 +381,12 @@ class TrainConfig(_Section):
         if self.replay_size < self.rollout_length:
             yield k("replay_size"), (f"must hold at least one rollout ({k('rollout_length')} = "
                                      f"{self.rollout_length}), got {self.replay_size}")
+        # Reward prediction sees 3 frames (networks.RP_FRAMES); its windows lie inside one stored rollout.
+        window = 3 + (self.reward_prediction_target == "next_frame")
+        if self.loss_weights.reward_prediction > 0 and self.rollout_length < window:
+            yield k("rollout_length"), (f"reward prediction ({k('reward_prediction_target')}="
+                                        f"{self.reward_prediction_target}) needs windows of {window} steps inside one "
+                                        f"rollout: must be >= {window}, got {self.rollout_length}")
 
 
 @dataclass(frozen=True)

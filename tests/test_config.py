@@ -210,6 +210,8 @@ def test_from_dict_direct():
         ("env.scene.grid=3", "env.scene.grid", "expected a list of 2 integers"),
         ("env.scene.grid=[1, 2, 3]", "env.scene.grid", "expected a list of 2 integers"),
         ("env.scene.grid=[1, x]", "env.scene.grid[1]", "expected an integer"),
+        ("train.replay_warmup=yes", "train.replay_warmup", "expected true or false"),
+        ("train.reward_prediction_zero_fraction=half", "train.reward_prediction_zero_fraction", "expected a number"),
     ],
 )
 def test_wrong_type(override, key, fragment):
@@ -242,6 +244,8 @@ def test_wrong_type(override, key, fragment):
         ("env.render.image_size=1024", "env.render.image_size", "too large"),
         ("env.render.fovy=10", "env.render.fovy", "(10, 120)"),
         ("env.render.column_candidates=0", "env.render.column_candidates", ">= 1"),
+        ("train.reward_prediction_zero_fraction=1.5", "train.reward_prediction_zero_fraction", "[0, 1]"),
+        ("train.reward_prediction_zero_fraction=-0.1", "train.reward_prediction_zero_fraction", "[0, 1]"),
     ],
 )
 def test_out_of_range(override, key, fragment):
@@ -261,6 +265,23 @@ def test_bad_literal_lists_choices():
         assert repr(choice) in msg
 
 
+@pytest.mark.parametrize("key, bad, choices", [
+    ("train.reward_prediction_loss", "hinge", ("softmax", "sigmoid")),
+    ("train.reward_prediction_target", "third_frame", ("last_frame", "next_frame")),
+    ("train.pixel_control_reward", "depth", ("luminance", "rgb")),
+])
+def test_method_choices(key, bad, choices):
+    """The method settings of docs/method.md: each bad value is a one-line error naming the
+    key and the choices."""
+    with pytest.raises(ConfigError) as ei:
+        load_config(None, [f"{key}={bad}"])
+    msg = str(ei.value)
+    assert msg.startswith(f"{key}:") and repr(bad) in msg and "\n" not in msg
+    for choice in choices:
+        assert repr(choice) in msg
+        assert getattr(load_config(None, [f"{key}={choice}"]).train, key.split(".")[1]) == choice
+
+
 def test_cross_field_checks():
     with pytest.raises(ConfigError) as ei:
         load_config(None, ["env.scene.height=1.05"])
@@ -273,6 +294,11 @@ def test_cross_field_checks():
     with pytest.raises(ConfigError, match="room-type goals need houses with rooms"):
         load_config(None, ["env.goal=room", "env.scene.kind=maze"])
     assert load_config(None, ["env.goal=room"]).env.goal == "room"
+
+    with pytest.raises(ConfigError, match=r"^train\.rollout_length: reward prediction .* must be >= 4, got 3$"):
+        load_config(None, ["train.rollout_length=3", "train.replay_size=30", "train.reward_prediction_target=next_frame"])
+    load_config(None, ["train.rollout_length=3", "train.replay_size=30"])  # 3 frames fit
+    load_config(None, ["train.rollout_length=2", "train.replay_size=30", "train.loss_weights.reward_prediction=0"])
 
     with pytest.raises(ConfigError, match=r"env\.scene\.mjcf_path: required"):
         load_config(None, ["env.scene.kind=mjcf"])

@@ -165,6 +165,29 @@ def test_reward_prediction_loss():
                                rtol=1e-5)
 
 
+def test_sigmoid_reward_prediction_loss_and_its_gradient():
+    """The per-class sigmoid binary cross-entropy, mean over windows and the 3 outputs, by
+    hand; its gradient (s(z) - y) / 3N against the softmax one (softmax(z) - y) / N."""
+    rng = np.random.default_rng(15)
+    N = 9
+    logits = rng.normal(scale=2.0, size=(N, 3)).astype(np.float32)
+    reward = rng.choice([0.0, 1.0, -1.0], size=N).astype(np.float32)
+    y = np.eye(3)[np.where(reward > 0, 1, np.where(reward < 0, 2, 0))]
+    z = logits.astype(np.float64)
+    s = 1.0 / (1.0 + np.exp(-z))
+    want = -np.mean(y * np.log(s) + (1 - y) * np.log(1 - s))
+    args = jnp.asarray(logits), jnp.asarray(reward)
+    np.testing.assert_allclose(float(losses.reward_prediction_loss(*args, "sigmoid")), want, rtol=1e-5)
+    # Zero rewards are class 0, positive class 1, negative class 2 (the same one-hot as the softmax loss).
+    assert float(losses.reward_prediction_loss(jnp.asarray([[9.0, -9.0, -9.0]]), jnp.zeros(1), "sigmoid")) < 1e-3
+    grad = lambda kind: np.asarray(jax.grad(lambda lg: losses.reward_prediction_loss(lg, args[1], kind))(args[0]))  # noqa: E731
+    np.testing.assert_allclose(grad("sigmoid"), (s - y) / (3 * N), atol=1e-6)
+    p_soft = np.exp(z) / np.exp(z).sum(-1, keepdims=True)
+    np.testing.assert_allclose(grad("softmax"), (p_soft - y) / N, atol=1e-6)
+    with pytest.raises(ValueError, match="hinge"):
+        losses.reward_prediction_loss(*args, "hinge")
+
+
 def test_vision_targets_and_losses():
     rng = np.random.default_rng(14)
     depth = rng.uniform(0.1, 9.0, size=(2, 8, 8)).astype(np.float32)
@@ -198,15 +221,50 @@ def test_pixel_control_loss_matches_rlax_without_dones():
     np.testing.assert_allclose(float(got), float(jnp.mean(reference)), rtol=1e-5)
 
 
-def test_pixel_control_loss_with_dones_matches_numpy_q_lambda():
+def _numpy_pixel_change(rgb, kind):
+    """|x_{t+1} - x_t| per pixel [T, H, W] of the luminance, or of R, G, B / 255 averaged over the channels."""
+    if kind == "luminance":
+        gray = _gray(rgb)
+        return np.abs(gray[1:] - gray[:-1])
+    x = rgb.astype(np.float64) / 255.0
+    return np.abs(x[1:] - x[:-1]).mean(-1)
+
+
+@pytest.mark.parametrize("kind", ["luminance", "rgb"])
+def test_pixel_control_rewards(kind):
+    """Per 4x4 cell, the mean absolute change of the luminance or of the three channels,
+    by loops; an 18x18 image is cropped to 16x16 at the bottom and right."""
+    rng = np.random.default_rng(16)
+    T, size, cell = 3, 18, 4
+    rgb = rng.integers(0, 256, size=(T + 1, size, size, 3), dtype=np.uint8)
+    want = np.zeros((T, 4, 4))
+    for t in range(T):
+        for i in range(4):
+            for j in range(4):
+                block = rgb[t : t + 2, i * cell : (i + 1) * cell, j * cell : (j + 1) * cell].astype(np.float64)
+                if kind == "luminance":
+                    block = block @ np.array([0.299, 0.587, 0.114])
+                want[t, i, j] = np.mean(np.abs(block[1] - block[0])) / 255.0
+    got = losses.pixel_control_rewards(jnp.asarray(rgb), cell, kind)
+    np.testing.assert_allclose(np.asarray(got), want, atol=1e-6)
+    # A change of one channel only: the luminance weighs it by its coefficient, rgb by 1/3.
+    still = np.zeros((2, 4, 4, 3), np.uint8)
+    still[1, ..., 2] = 255
+    one = float(losses.pixel_control_rewards(jnp.asarray(still), 4, kind)[0, 0, 0])
+    np.testing.assert_allclose(one, 0.114 if kind == "luminance" else 1 / 3, rtol=1e-5)
+    with pytest.raises(ValueError, match="depth"):
+        losses.pixel_control_rewards(jnp.asarray(rgb), cell, "depth")
+
+
+@pytest.mark.parametrize("kind", ["luminance", "rgb"])
+def test_pixel_control_loss_with_dones_matches_numpy_q_lambda(kind):
     T, A, gamma, cell, size = 7, 4, 0.9, 4, 18  # 18x18 is cropped to 16x16: a 4x4 grid
     G = size // cell
     rgb, actions, q = _pc_inputs(3, T, size, G, A)
     dones = np.zeros(T, bool)
     dones[[2, 5]] = True
 
-    gray = _gray(rgb)[:, : G * cell, : G * cell]
-    diff = np.abs(gray[1:] - gray[:-1])
+    diff = _numpy_pixel_change(rgb[:, : G * cell, : G * cell], kind)
     r = np.zeros((T, G, G))
     for t in range(T):
         for i in range(G):
@@ -221,7 +279,8 @@ def test_pixel_control_loss_with_dones_matches_numpy_q_lambda():
                 sq.append(0.5 * (g - q[t, i, j, actions[t]]) ** 2)
     expected = np.mean(sq)
 
-    got = losses.pixel_control_loss(jnp.asarray(rgb), jnp.asarray(actions), jnp.asarray(dones), jnp.asarray(q), gamma, cell)
+    got = losses.pixel_control_loss(jnp.asarray(rgb), jnp.asarray(actions), jnp.asarray(dones), jnp.asarray(q), gamma, cell,
+                                    kind)
     np.testing.assert_allclose(float(got), expected, rtol=1e-5)
 
 
@@ -298,9 +357,13 @@ def _window_buffer(rewards_nonzero: bool, seed: int = 5):
     return buf, stored
 
 
-@pytest.mark.parametrize("rewards_nonzero", [True, False])
-def test_sample_reward_windows(rewards_nonzero):
-    frames, n = networks.RP_FRAMES, 4000
+@pytest.mark.parametrize("rewards_nonzero,frames,zero_fraction", [
+    (True, 3, 0.5), (False, 3, 0.5), (True, 3, 1 / 3), (True, 4, 1 / 3), (True, 3, 0.0), (True, 4, 1.0), (False, 4, 0.0)])
+def test_sample_reward_windows(rewards_nonzero, frames, zero_fraction):
+    """Exactly the valid windows, and the share of those ending with zero reward measured
+    over 4000 draws: `zero_fraction` when the buffer holds both kinds (one standard error
+    is at most 0.008 here), otherwise all of the kind it holds."""
+    n = 4000
     buf, stored = _window_buffer(rewards_nonzero)
     L, B = stored[0]["reset"].shape
     valid = {(k, t, b) for k, r in enumerate(stored) for t in range(frames - 1, L - 1) for b in range(B)
@@ -308,7 +371,7 @@ def test_sample_reward_windows(rewards_nonzero):
     assert any(stored[k]["reward"][t, b] != 0 for k, t, b in valid) == rewards_nonzero
 
     win, reward = replay_lib.sample_reward_windows(buf, jax.random.PRNGKey(1), n, frames, buf.data["reward"],
-                                                   buf.data["reset"])
+                                                   buf.data["reset"], zero_fraction)
     target, rgb, reward = np.asarray(win["target"]), np.asarray(win["rgb"]), np.asarray(reward)
     assert target.shape == (n, frames) and rgb.shape == (n, frames, 2, 2, 3) and reward.shape == (n,)
     assert np.all(target > 0), "window from an unfilled slot"
@@ -317,10 +380,14 @@ def test_sample_reward_windows(rewards_nonzero):
     assert np.all(k == k[:, :1]) and np.all(b == b[:, :1])
     np.testing.assert_array_equal(t, t[:, -1:] + np.arange(1 - frames, 1))
     last = list(zip(k[:, -1], t[:, -1], b[:, -1]))
-    assert set(last) == valid
+    is_zero = {w: stored[w[0]]["reward"][w[1], w[2]] == 0 for w in valid}
+    drawable = valid
+    if len(set(is_zero.values())) == 2:  # both kinds stored: a kind of share 0 is never drawn
+        drawable = {w for w, z in is_zero.items() if (zero_fraction > 0 if z else zero_fraction < 1)}
+    assert set(last) == drawable
     np.testing.assert_array_equal(reward, [stored[kk]["reward"][tt, bb] for kk, tt, bb in last])
     if rewards_nonzero:
-        assert abs(np.mean(reward != 0) - 0.5) < 0.05
+        assert abs(np.mean(reward == 0) - zero_fraction) < 0.03
     else:
         assert np.all(reward == 0)
 
@@ -473,6 +540,45 @@ def test_zero_weights_remove_replay_losses(lstm):
     _, metrics = jax.eval_shape(fns.update, ts)
     terms = {k[len("loss/"):] for k in metrics if k.startswith("loss/")}
     assert terms == {"actor", "critic", "entropy", "depth", "segmentation", "target_segmentation", "total"}
+
+
+AUTHORS_REPLAY = ["train.reward_prediction_loss=sigmoid", "train.reward_prediction_zero_fraction=0.3333",
+                  "train.reward_prediction_target=next_frame", "train.pixel_control_reward=rgb"]
+
+
+@pytest.mark.parametrize("overrides", [[], AUTHORS_REPLAY], ids=["default", "authors"])
+def test_replay_term_settings_reach_the_losses(lstm, overrides):
+    """Pixel control and reward prediction of `update.replay_terms`, recomputed from the
+    sampling functions and the loss functions with the configured settings: reward
+    windows of 3 frames predict the reward after the last one, or (next_frame) windows of
+    4 frames whose first 3 the head sees predict the reward after the 4th."""
+    cfg = load_config(None, TINY + ["train.loss_weights.off_policy_critic=0"] + overrides)
+    tc, net, params = cfg.train, lstm.net, lstm.ts.params
+    replay = lstm.ts.replay
+    for seed in range(3):
+        traj, _ = lstm.rollout(jax.random.PRNGKey(10 + seed))
+        replay = replay_lib.add(replay, traj, lstm.ts.agent.carry)
+    feats, key = lstm.target_feats, jax.random.PRNGKey(7)
+    terms = jax.jit(functools.partial(update_lib.replay_terms, cfg, net))(params, feats, replay, key)
+
+    k_seq, k_rp = jax.random.split(key)
+    frames = 4 if overrides else 3
+    win, reward = replay_lib.sample_reward_windows(replay, k_rp, tc.replay_batch, frames, replay.data.reward,
+                                                   replay.data.reset, 0.3333 if overrides else 0.5)
+    n, rp = tc.replay_batch, networks.RP_FRAMES
+    rgb, target = win.rgb[:, :rp].reshape((n * rp,) + win.rgb.shape[2:]), win.target[:, :rp].reshape(-1)
+    conv4, _ = net.encode(params, rgb, feats[target])
+    logits = net.reward_prediction(params, conv4.reshape((n, rp) + conv4.shape[1:]))
+    kind = "sigmoid" if overrides else "softmax"
+    np.testing.assert_allclose(float(terms["reward_prediction"]), float(losses.reward_prediction_loss(logits, reward, kind)),
+                               rtol=1e-4)
+
+    seq, carry0 = replay_lib.sample_sequences(replay, k_seq, n)
+    _, out = acting.unroll(net, params, feats, seq.inputs, carry0)
+    q = networks.apply_flat(lambda x: net.pixel_control(params, x), out)
+    pc = [losses.pixel_control_loss(seq.rgb[:, i], seq.action[:, i], seq.done[:, i], q[:, i], tc.pixel_control_gamma,
+                                    tc.pixel_control_cell, "rgb" if overrides else "luminance") for i in range(n)]
+    np.testing.assert_allclose(float(terms["pixel_control"]), float(np.mean(pc)), rtol=1e-4)
 
 
 def test_segmentation_targets_in_both_encodings(lstm, frame_stack):

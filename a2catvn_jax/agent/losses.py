@@ -7,7 +7,14 @@ Returns follow the paper's eq. (1): every step of a rollout is bootstrapped from
 critic's value at the end of the rollout (a mixture of n-step returns), and the
 bootstrap is cut where an episode ended. Pixel control is Peng's Q(1), i.e. n-step
 Q-learning bootstrapped by max_a Q at the end of the sequence, on pseudo-rewards that
-are the mean absolute change of the grayscale image in each cell; both come from rlax.
+are the mean absolute change of the grayscale image (or of R, G and B) in each cell;
+both come from rlax.
+
+Every term is a mean over its elements (steps, sequences, cells, pixels), not the sum
+over the rollout that the paper's equations write; the squared-error terms carry a
+1/2 (critic, off-policy critic, pixel control), so that a weight w here equals a weight
+w/2 on a plain mean squared error. docs/method.md compares these choices with the
+paper and the authors' code.
 """
 
 from __future__ import annotations
@@ -72,10 +79,23 @@ def reward_class(reward):
     return jnp.where(reward > 0, 1, jnp.where(reward < 0, 2, 0)).astype(jnp.int32)
 
 
-def reward_prediction_loss(logits, reward):
-    """Softmax cross-entropy -log p(class(r)) of logits [N, 3] for the rewards [N] that
-    followed each window, mean over N (classes of `reward_class`)."""
-    return cross_entropy(logits, reward_class(reward))
+def reward_prediction_loss(logits, reward, kind: str = "softmax"):
+    """Reward-prediction loss of logits [N, 3] for the rewards [N] that followed each
+    window, with y the one-hot class of `reward_class`:
+
+    - "softmax": the cross-entropy -log softmax(z)_y, mean over N;
+    - "sigmoid": each output a separate binary classifier, the binary cross-entropy
+      -[y_c log s(z_c) + (1 - y_c) log(1 - s(z_c))] with s the logistic sigmoid, mean
+      over N and the 3 outputs. Its gradient with respect to z_c is (s(z_c) - y_c) / 3N,
+      about a third of the softmax one's (softmax(z)_c - y_c) / N.
+    """
+    labels = reward_class(reward)
+    if kind == "softmax":
+        return cross_entropy(logits, labels)
+    if kind == "sigmoid":
+        y = jax.nn.one_hot(labels, logits.shape[-1], dtype=logits.dtype)
+        return -jnp.mean(y * jax.nn.log_sigmoid(logits) + (1.0 - y) * jax.nn.log_sigmoid(-logits))
+    raise ValueError(f"unknown reward-prediction loss {kind!r}")
 
 
 def grayscale(rgb):
@@ -83,26 +103,32 @@ def grayscale(rgb):
     return rgb.astype(jnp.float32) @ GRAY / 255.0
 
 
-def pixel_control_rewards(rgb, cell: int):
-    """Pseudo-rewards [T, G, G] of a sequence of T+1 uint8 images [T+1, H, W, 3]:
-    mean absolute change of grayscale intensity per cell x cell block (image cropped to
-    a multiple of `cell`)."""
-    gray = grayscale(rgb)
-    g_h, g_w = gray.shape[1] // cell, gray.shape[2] // cell
-    gray = gray[:, : g_h * cell, : g_w * cell, None]
-    return rlax.pixel_control_rewards(gray, cell)
+def pixel_control_rewards(rgb, cell: int, kind: str = "luminance"):
+    """Pseudo-rewards [T, G, G] of a sequence of T+1 uint8 images [T+1, H, W, 3]: per
+    cell x cell block (image cropped to a multiple of `cell` at the bottom and right),
+    the mean absolute change of the luminance (`kind` "luminance"), or of R, G and B
+    scaled to [0, 1] and averaged over the three channels ("rgb")."""
+    if kind == "luminance":
+        x = grayscale(rgb)[..., None]
+    elif kind == "rgb":
+        x = rgb.astype(jnp.float32) / 255.0
+    else:
+        raise ValueError(f"unknown pixel-control reward {kind!r}")
+    g_h, g_w = x.shape[1] // cell, x.shape[2] // cell
+    return rlax.pixel_control_rewards(x[:, : g_h * cell, : g_w * cell], cell)
 
 
-def pixel_control_loss(rgb, actions, dones, q_values, gamma: float, cell: int):
-    """n-step Q-learning loss for pixel control on one sequence, mean over steps and cells.
+def pixel_control_loss(rgb, actions, dones, q_values, gamma: float, cell: int, reward: str = "luminance"):
+    """n-step Q-learning loss for pixel control on one sequence, mean over steps and cells
+    of 1/2 (target - Q)^2.
 
-    rgb [T+1, H, W, 3] uint8; actions, dones [T]; q_values [T+1, G, G, A]. A step that
-    ended an episode has no pseudo-reward (its next frame belongs to a new episode) and
-    no bootstrap beyond it.
+    rgb [T+1, H, W, 3] uint8; actions, dones [T]; q_values [T+1, G, G, A]; `reward` the
+    kind of `pixel_control_rewards`. A step that ended an episode has no pseudo-reward
+    (its next frame belongs to a new episode) and no bootstrap beyond it.
     """
     T = actions.shape[0]
     not_done = 1.0 - dones.astype(jnp.float32)
-    rewards = pixel_control_rewards(rgb, cell) * not_done[:, None, None]
+    rewards = pixel_control_rewards(rgb, cell, reward) * not_done[:, None, None]
     A = q_values.shape[-1]
     q_tm1 = q_values[:-1].reshape(T, -1, A)
     q_t = q_values[1:].reshape(T, -1, A)

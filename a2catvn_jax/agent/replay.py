@@ -10,8 +10,9 @@ Sampling:
 - `sample_sequences`: n (rollout, environment) pairs, uniformly among the stored ones;
   each is a whole rollout sequence of one environment.
 - `sample_reward_windows`: n windows of `frames` consecutive steps inside one episode,
-  half of them (in expectation) ending with a non-zero reward when the buffer holds
-  any, the rest ending with zero reward (reward prediction).
+  a share `zero_fraction` of them (in expectation; half by default) ending with zero
+  reward and the rest with a non-zero reward, when the buffer holds both kinds
+  (reward prediction).
 """
 
 from __future__ import annotations
@@ -72,14 +73,16 @@ def sample_sequences(replay: Replay, key, n: int):
     return seqs, carry
 
 
-def sample_reward_windows(replay: Replay, key, n: int, frames: int, reward, reset):
+def sample_reward_windows(replay: Replay, key, n: int, frames: int, reward, reset, zero_fraction: float = 0.5):
     """n windows of `frames` consecutive steps of one environment inside one episode.
 
     reward [slots, L-1, B] are the stored rollouts' rewards and reset [slots, L, B] their
     episode starts. Returns (rollout pytree with leaves [n, frames, ...], reward [n] of
     the last step). The windows come from the first L-1 steps of stored rollouts (those
     with a recorded reward); a window may not cross an episode start (a `reset` after
-    its first frame).
+    its first frame). Each window independently ends with zero reward with probability
+    `zero_fraction` and with a non-zero one otherwise, drawn uniformly among the windows
+    of its kind; when the buffer holds windows of only one kind, all come from it.
     """
     S, T, B = reward.shape
     t = jnp.arange(T)
@@ -91,7 +94,7 @@ def sample_reward_windows(replay: Replay, key, n: int, frames: int, reward, rese
     nonzero = ok & (reward != 0)
     zero = ok & (reward == 0)
     k_kind, k_nz, k_z = jax.random.split(key, 3)
-    want_nonzero = jax.random.bernoulli(k_kind, 0.5, (n,)) & jnp.any(nonzero)
+    want_nonzero = jax.random.bernoulli(k_kind, 1.0 - zero_fraction, (n,)) & jnp.any(nonzero)
     pick = lambda k, m: jax.random.categorical(k, jnp.where(m.reshape(-1), 0.0, -jnp.inf), shape=(n,))  # noqa: E731
     idx = jnp.where(want_nonzero, pick(k_nz, nonzero), pick(k_z, jnp.where(jnp.any(zero), zero, ok)))
     slot, step, env = idx // (T * B), (idx // B) % T, idx % B

@@ -11,14 +11,16 @@ everything of one update inside `jax.jit`:
 3. compute the losses (`losses.py`): actor, critic and entropy on the rollout with
    returns bootstrapped at its end (paper eq. 1-3); off-policy critic and pixel
    control on sequences sampled from the replay buffer; reward prediction on replay
-   windows balanced between zero and non-zero final reward; depth, observation and
-   target segmentation on the rollout's frames;
+   windows with a set share (`train.reward_prediction_zero_fraction`) ending with zero
+   reward; depth, observation and target segmentation on the rollout's frames;
 4. sum them with the configured weights, clip the global gradient norm and apply
    RMSprop with the (linearly decaying) learning rate.
 
 A loss whose weight is 0 is not traced at all, so plain A2C, A2C+UNREAL and A2CAT-VN
 are three configurations of this one code path; with no replay loss on there is no
-replay buffer either.
+replay buffer either. With `train.replay_warmup`, `init` fills the buffer with the
+initial policy's rollouts before the first update (`warmup`); those frames are not
+counted.
 
 The memory core's state is carried from one rollout to the next and cleared at the
 first step of every episode. With `train.curriculum` the environment's complexity tau
@@ -150,17 +152,19 @@ def replay_terms(cfg: Config, networks: Networks, params: Params, target_feats, 
                                                                        timeouts(cfg, seq))
         if w.pixel_control > 0:
             q = apply_flat(lambda x: networks.pixel_control(params, x), out)
-            pc = jax.vmap(losses.pixel_control_loss, in_axes=(1, 1, 1, 1, None, None))(
-                seq.rgb, seq.action, seq.done, q, tc.pixel_control_gamma, tc.pixel_control_cell
-            )
-            terms["pixel_control"] = jnp.mean(pc)
+            pc_loss = functools.partial(losses.pixel_control_loss, gamma=tc.pixel_control_gamma,
+                                        cell=tc.pixel_control_cell, reward=tc.pixel_control_reward)
+            terms["pixel_control"] = jnp.mean(jax.vmap(pc_loss, in_axes=1)(seq.rgb, seq.action, seq.done, q))
     if w.reward_prediction > 0:
         data = replay.data
-        win, reward = replay_lib.sample_reward_windows(replay, k_rp, n, RP_FRAMES, data.reward, data.reset)
-        flat = lambda x: x.reshape((n * RP_FRAMES,) + x.shape[2:])  # noqa: E731
+        # "next_frame": windows of RP_FRAMES + 1 steps in one episode, the head sees the first RP_FRAMES.
+        frames = RP_FRAMES + (tc.reward_prediction_target == "next_frame")
+        win, reward = replay_lib.sample_reward_windows(replay, k_rp, n, frames, data.reward, data.reset,
+                                                       tc.reward_prediction_zero_fraction)
+        flat = lambda x: x[:, :RP_FRAMES].reshape((n * RP_FRAMES,) + x.shape[2:])  # noqa: E731
         conv4, _ = networks.encode(params, flat(win.rgb), target_feats[flat(win.target)])
         logits = networks.reward_prediction(params, conv4.reshape((n, RP_FRAMES) + conv4.shape[1:]))
-        terms["reward_prediction"] = losses.reward_prediction_loss(logits, reward)
+        terms["reward_prediction"] = losses.reward_prediction_loss(logits, reward, tc.reward_prediction_loss)
     return terms
 
 
@@ -244,6 +248,28 @@ def collect(cfg: Config, env, networks: Networks, targets: Targets, ts: TrainSta
     return Batch(traj, truth_seq, ts.agent.carry, replay, k_loss, env_state, agent, stats, key, tau)
 
 
+def warmup_rollouts(cfg: Config) -> int:
+    """Rollouts `train.replay_warmup` collects before the first update: one fewer than the
+    buffer holds, so that the first update's own rollout fills it (0 when it is off or
+    there is no replay buffer)."""
+    if not (cfg.train.replay_warmup and uses_replay(cfg)):
+        return 0
+    return max(1, cfg.train.replay_size // cfg.train.rollout_length) - 1
+
+
+def warmup(cfg: Config, env, networks: Networks, targets: Targets, ts: TrainState) -> TrainState:
+    """`ts` after `warmup_rollouts(cfg)` rollouts of its policy written to the replay buffer:
+    the environments, the agent's memory, the buffer and the key move on; the parameters,
+    the optimiser state and the update count (so the frame count, the learning rate and
+    the curriculum) do not."""
+
+    def one(_, ts):
+        batch = collect(cfg, env, networks, targets, ts)
+        return ts.replace(env_state=batch.env_state, agent=batch.agent, replay=batch.replay, key=batch.key)
+
+    return jax.lax.fori_loop(0, warmup_rollouts(cfg), one, ts)
+
+
 def make_grad_norms(env, networks: Networks, cfg: Config) -> Callable:
     """A jitted diagnostic `grad_norms(TrainState) -> metrics`: the norm of the gradient of
     each weighted loss term (and of their sum) on the conv layers every head shares
@@ -294,7 +320,10 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
         env_state = env.reset(k_env, complexity=complexity(cfg, 0))
         agent = initial_agent(networks, B)
         replay = replay_lib.init(transition_example(cfg, B), agent.carry, replay_slots) if uses_replay(cfg) else None
-        return TrainState(params, optimizer.init(params), env_state, agent, replay, k_train, jnp.zeros((), jnp.int32))
+        ts = TrainState(params, optimizer.init(params), env_state, agent, replay, k_train, jnp.zeros((), jnp.int32))
+        if tc.replay_warmup and replay is not None:
+            ts = warmup(cfg, env, networks, targets, ts)
+        return ts
 
     def update(ts: TrainState):
         batch = collect(cfg, env, networks, targets, ts)
