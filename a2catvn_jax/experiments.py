@@ -1,36 +1,52 @@
-"""Comparisons of the method's variants: train with several seeds, evaluate, plot, tabulate.
+"""Comparisons of the method's variants: train with several seeds, evaluate, store, plot, tabulate.
 
-    python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1] [--episodes 100]
-        [--root runs/experiments] [--docs docs] [--set KEY=VALUE ...]
-    python -m a2catvn_jax.experiments --list
+    python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1 2 3 4 | --stored-seeds]
+        [--episodes 100] [--threshold T] [--root runs/experiments] [--store docs/experiments/runs]
+        [--docs docs] [--skip-missing] [--set KEY=VALUE ...]
+    python -m a2catvn_jax.experiments --list [NAME ...] [--scale cpu|paper] [--store DIR]
 
 Experiments (`EXPERIMENTS`):
-  aux             A2CAT-VN vs A2C+UNREAL vs plain A2C (image goals in one house)
+  aux             A2CAT-VN (pre-trained and not) vs A2C+UNREAL vs plain A2C, and a blind A2CAT-VN
+  ablations       A2CAT-VN without one auxiliary loss at a time
   memory          LSTM vs frame stack (mazes, UNREAL auxiliary tasks)
-  pretraining     with vs without supervised pre-training (image goals in one house)
-  curriculum      with vs without the complexity curriculum (image goals in one house)
-  generalisation  room-type goals over 16 houses; held-out houses and new targets
+  pretraining     with vs without supervised pre-training
+  curriculum      with vs without the complexity curriculum
+  generalisation  room-type goals over 16 houses, A2CAT-VN and blind; held-out houses and new targets
   clipping        A2CAT-VN with the gradient-norm clip of Table I (0.5) vs 40, and A2C
   grid            the grid action set on small rooms (A2CAT-VN vs A2C)
 
 Each experiment names a configuration of `configs/`: `NAME_cpu.yaml` at `--scale cpu`
 (minutes per run on a laptop CPU), `NAME.yaml` at `--scale paper` (the paper's sizes,
 for a GPU). Every variant is trained once per seed (`seed=S`; the houses stay the same)
-in a work directory named by the hash of its configuration, so a variant shared by two
-experiments (e.g. A2CAT-VN in `aux`, the baseline of `curriculum`) is trained once, and
-an interrupted experiment resumes: finished runs are kept, unfinished ones continue
-from their last checkpoint. Pre-trained variants first run `pretrain` with the same
-seed. Each run is evaluated with the sampled policy in its training houses, with new
-targets in them and in held-out houses (`evaluate --houses`), and a uniformly random
-policy gives the baseline.
+under a name from the hash of its configuration, so a variant shared by two
+experiments (e.g. A2CAT-VN in `aux` and `ablations`) is trained once. Pre-trained
+variants first run `pretrain` with the same seed. Each run is evaluated with the
+sampled policy in its training houses, with new targets in them and in held-out houses
+(`evaluate --houses`); a uniformly random policy and the shortest-path oracle, which
+need no training, are evaluated in the same houses.
+
+Runs as data: a finished, evaluated run is copied to the store, `STORE/SCALE/CONFIG/
+RUN_KEY/seed_N/` (config.yaml, variant.json, metrics.jsonl with the columns the
+curves use, the evaluation JSONs, experiment_time.json and done.json: updates, frames,
+date, machine, git commit); checkpoints and TensorBoard files stay in ROOT. Commit the
+store: a stored run is never trained again, and the curves and tables are made from
+the store, so on a fresh clone `python -m a2catvn_jax.experiments NAME` re-plots and
+re-tabulates without training, and more `--seeds` train only the missing ones.
+`--stored-seeds` uses the seeds stored for every variant and trains nothing. An
+evaluation a stored run lacks (another `--episodes`) needs that run's checkpoint in
+ROOT; without it the command stops with an error naming the run, unless
+`--skip-missing` leaves those numbers out. `--list` shows how many seeds of each
+variant are stored.
 
 Outputs: `DOCS/experiments/NAME_SCALE.png` (training success rate and episode length
-against frames: the mean over seeds, shaded ± one standard error), `ROOT/SCALE/NAME.json`
-(every number, 95% t-intervals of the curves included), and a section of `DOCS/results.md` between the markers
-`<!-- experiment NAME SCALE -->` and `<!-- end experiment NAME SCALE -->` (rewritten on
-each run; text outside the markers is kept) with the command, machine, date, wall time
-and a table: frames until the smoothed training success rate first reaches the
-experiment's threshold, final training success, and evaluation success and SPL.
+against frames: the mean over seeds, shaded with its 95% t-band; the threshold and the
+baselines as horizontal lines), `STORE/SCALE/NAME.json` (every number, per seed), and
+a section of `DOCS/results.md` between the markers `<!-- experiment NAME SCALE -->`
+and `<!-- end experiment NAME SCALE -->` (rewritten on each run; text outside the
+markers is kept) with the command, where and when the runs were trained, and a table
+of means over seeds with 95% t-intervals: frames until the smoothed training success
+rate first reaches the experiment's threshold (and how many runs never do), final
+training success, evaluation success and SPL, and the baselines' rows.
 """
 
 from __future__ import annotations
@@ -40,39 +56,57 @@ import sys
 
 from a2catvn_jax import cli
 from a2catvn_jax.config import ConfigError
-from a2catvn_jax.run.experiments import EXPERIMENTS, SCALES, ExperimentError, run_experiment
+from a2catvn_jax.run import experiments as ex
+from a2catvn_jax.run.experiments import EXPERIMENTS, ExperimentError
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.experiments", description=__doc__.split("\n\n")[0])
-    parser.add_argument("name", nargs="?", help="experiment: " + ", ".join(EXPERIMENTS))
-    parser.add_argument("--list", action="store_true", help="list the experiments and their variants")
-    parser.add_argument("--scale", choices=SCALES, default="cpu")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("name", nargs="*", help="experiment: " + ", ".join(EXPERIMENTS))
+    parser.add_argument("--list", action="store_true",
+                        help="list the experiments (or the NAMEs), their variants and how many seeds of each are stored")
+    parser.add_argument("--scale", choices=ex.SCALES, default=None, help="default: cpu (--list: both)")
+    seeds = parser.add_mutually_exclusive_group()
+    seeds.add_argument("--seeds", type=int, nargs="+", default=list(ex.DEFAULT_SEEDS),
+                       help=f"default: {' '.join(map(str, ex.DEFAULT_SEEDS))}")
+    seeds.add_argument("--stored-seeds", action="store_true",
+                       help="the seeds stored for every variant; trains nothing")
     parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes per run and set")
     parser.add_argument("--threshold", type=float, default=None,
                         help="training success rate for 'frames to threshold' (default: the experiment's, per scale)")
-    parser.add_argument("--root", default="runs/experiments", help="where the runs go")
+    parser.add_argument("--root", default=str(ex.DEFAULT_ROOT), help="where the runs train (checkpoints, TensorBoard)")
+    parser.add_argument("--store", default=None,
+                        help=f"where finished runs are stored, to commit (default: DOCS/experiments/runs, i.e. {ex.DEFAULT_STORE})")
     parser.add_argument("--docs", default="docs", help="where results.md and the plots go")
+    parser.add_argument("--skip-missing", action="store_true",
+                        help="leave out evaluations that a stored run lacks and whose checkpoint is not here")
     cli.add_config_args(parser, config=False,
                         help="configuration changes applied to every variant (they change the runs' names)")
     args = parser.parse_args(argv)
+    unknown = [n for n in args.name if n not in EXPERIMENTS]
+    if unknown:
+        parser.error(f"unknown experiment {unknown[0]!r}; choose one of {', '.join(EXPERIMENTS)}")
+    store = args.store or f"{args.docs}/experiments/runs"
     if args.list:
-        for exp in EXPERIMENTS.values():
-            print(f"{exp.name}: {exp.title} (configs/{exp.config}[_cpu].yaml; success threshold "
-                  f"{exp.threshold:g}, {exp.cpu_threshold:g} at CPU scale)")
-            for v in exp.variants:
-                print(f"  {v.label}: {' '.join(v.overrides) or 'as configured'}{' + pre-training' if v.pretrain else ''}")
+        with cli.errors(parser, code=2, kinds=(ConfigError, ExperimentError, ValueError)):
+            print(ex.listing(store, [args.scale] if args.scale else ex.SCALES, args.name, cli.overrides_of(args)))
         return
-    if args.name is None:
-        parser.error("name an experiment (or --list)")
-    if args.name not in EXPERIMENTS:
-        parser.error(f"unknown experiment {args.name!r}; choose one of {', '.join(EXPERIMENTS)}")
+    if len(args.name) != 1:
+        parser.error("name one experiment (or --list)")
+    exp = EXPERIMENTS[args.name[0]]
+    scale = args.scale or "cpu"
     command = "python -m a2catvn_jax.experiments " + " ".join(argv if argv is not None else sys.argv[1:])
     with cli.errors(parser, code=1), cli.errors(parser, code=2, kinds=(ConfigError, ExperimentError, ValueError)):
-        run_experiment(EXPERIMENTS[args.name], scale=args.scale, seeds=args.seeds, episodes=args.episodes,
-                       root=args.root, docs=args.docs, overrides=cli.overrides_of(args),
-                       command=command.strip(), threshold=args.threshold)
+        run_seeds = args.seeds
+        if args.stored_seeds:
+            stored = ex.stored_seeds(exp, scale, store, cli.overrides_of(args))
+            run_seeds = sorted(set.intersection(*(set(s) for s in stored.values())))
+            if not run_seeds:
+                raise ExperimentError(f"{exp.name}: no seed is stored for every variant in {store} ("
+                                      + "; ".join(f"{label}: {len(s)}" for label, s in stored.items()) + ")")
+        ex.run_experiment(exp, scale=scale, seeds=run_seeds, episodes=args.episodes, root=args.root, docs=args.docs,
+                       store=store, overrides=cli.overrides_of(args), command=command.strip(),
+                       threshold=args.threshold, skip_missing=args.skip_missing)
 
 
 if __name__ == "__main__":

@@ -1,43 +1,62 @@
 """The experiment runner: run naming and sharing, statistics, the report, and a tiny
-end-to-end experiment that trains, evaluates, plots, writes its section and resumes."""
+end-to-end experiment that trains, evaluates, stores, plots and writes its section;
+then, with the work directories deleted, re-tabulates from the store alone, refuses an
+evaluation that needs a checkpoint, and trains only an added seed."""
 
 from __future__ import annotations
 
 import json
+import math
+import shutil
 
 import numpy as np
 import pytest
 from scipy import stats
 
+from a2catvn_jax import experiments as cli
 from a2catvn_jax.run import experiments as ex
 from tiny import TINY_LEARNER
 
-TINY = TINY_LEARNER + ["env.max_episode_steps=10", "train.total_frames=32", "train.log_every=1",
-                       "train.checkpoint_every=1"]
-
-
-def quiet(*_):
-    pass
+# Plain A2C (no auxiliary loss, no replay): the smallest training program to compile.
+TINY = TINY_LEARNER + list(ex.NO_VN + ex.NO_UNREAL) + [
+    "env.max_episode_steps=10", "train.total_frames=32", "train.log_every=1", "train.checkpoint_every=1"]
 
 
 def test_every_experiment_has_both_configs_and_plans():
     for exp in ex.EXPERIMENTS.values():
         for scale in ex.SCALES:
-            runs = ex.plan(exp, scale, [0, 1], "/tmp/unused")
+            runs = ex.plan(exp, scale, [0, 1], "/tmp/unused", store="/tmp/store")
             assert len(runs) == 2 * len(exp.variants)
             assert {r.cfg.seed for r in runs} == {0, 1}
             # Variants differ in their configuration (or pre-training), so in their work directory.
             assert len({r.workdir.parent for r in runs}) == len(exp.variants)
+            assert all(r.stored.relative_to("/tmp/store") == r.workdir.relative_to("/tmp/unused") for r in runs)
+
+
+def test_learning_by_sight_experiments():
+    aux, ablations, gen = (ex.EXPERIMENTS[n] for n in ("aux", "ablations", "generalisation"))
+    assert [v.label for v in aux.variants] == ["A2CAT-VN (pre-trained)", "A2CAT-VN", "A2C+UNREAL", "A2C",
+                                               "blind A2CAT-VN"]
+    for exp in (aux, gen):
+        blind = [r for r in ex.plan(exp, "cpu", [0], "/r") if r.variant.label == "blind A2CAT-VN"]
+        assert len(blind) == 1 and blind[0].cfg.agent.blind
+    runs = ex.plan(ablations, "cpu", [0], "/r")
+    assert runs[0].workdir == ex.plan(aux, "cpu", [0], "/r")[1].workdir  # the full A2CAT-VN is shared
+    weights = ex.AUX_LOSSES
+    for run, loss in zip(runs[1:], weights, strict=True):
+        w = run.cfg.train.loss_weights
+        assert getattr(w, loss) == 0 and all(getattr(w, other) > 0 for other in weights if other != loss)
+    assert aux.threshold_at("cpu") == ablations.threshold_at("cpu") == gen.threshold_at("cpu") == 0.5
 
 
 def test_shared_variants_share_runs_and_seeds_do_not():
     aux, curriculum = ex.EXPERIMENTS["aux"], ex.EXPERIMENTS["curriculum"]
-    a = ex.plan(aux, "cpu", [0], "/r")[0]
+    pre, a = ex.plan(aux, "cpu", [0], "/r")[:2]
     c = ex.plan(curriculum, "cpu", [0], "/r")
     assert c[0].workdir == a.workdir  # "no curriculum" is A2CAT-VN as configured
     assert c[1].workdir != a.workdir and c[1].cfg.train.curriculum
-    pre = ex.plan(ex.EXPERIMENTS["pretraining"], "cpu", [0], "/r")
-    assert pre[1].workdir != a.workdir and pre[1].cfg == a.cfg  # same config, pre-trained: another run
+    assert pre.workdir != a.workdir and pre.cfg == a.cfg  # same config, pre-trained: another run
+    assert ex.plan(ex.EXPERIMENTS["pretraining"], "cpu", [0], "/r")[1].workdir == pre.workdir
     s0, s1 = ex.plan(aux, "cpu", [0, 1], "/r")[:2]
     assert s0.workdir.parent == s1.workdir.parent and s0.workdir != s1.workdir
 
@@ -58,11 +77,36 @@ def test_statistics():
     np.testing.assert_allclose(mean + half, high)
     np.testing.assert_allclose(ex.t_interval(values[:1])[1], 0.0)
     np.testing.assert_allclose(ex.standard_error(values), stats.sem(values, axis=0))
-    np.testing.assert_allclose(ex.standard_error(values[:2]), np.abs(values[0] - values[1]) / 2)  # the range
     np.testing.assert_allclose(ex.smooth(np.array([1.0, np.nan, 3.0, 5.0]), 2), [1.0, 1.0, 3.0, 4.0])
     curve = {"frames": np.array([10.0, 20.0, 30.0]), "success_rate": np.array([0.2, 0.75, 0.6])}
     assert ex.frames_to_threshold(curve, 0.7) == 20.0
     assert ex.frames_to_threshold(curve, 0.8) is None
+
+
+def test_t_interval_by_hand():
+    # 0.5 .. 0.9: mean 0.7, sample sd sqrt(0.1 / 4), standard error sd / sqrt(5) = 0.0707107;
+    # t quantile 0.975 with 4 degrees of freedom (tables): 2.776445.
+    est = ex.estimate([0.5, 0.6, 0.7, 0.8, 0.9])
+    half = 2.776445 * math.sqrt(0.1 / 4) / math.sqrt(5)
+    assert est.n == 5 and est.mean == pytest.approx(0.7)
+    assert est.low == pytest.approx(0.7 - half, abs=1e-6) and est.high == pytest.approx(0.7 + half, abs=1e-6)
+    assert ex.format_estimate([0.5, 0.6, 0.7, 0.8, 0.9]) == "0.70 [0.50, 0.90]"
+    # clipped to the possible range; one value: no interval; missing values are counted
+    assert ex.format_estimate([0.9, 1.0]) == "0.95 [0.31, 1.00]"
+    assert ex.format_estimate([0.25]) == "0.25"
+    assert ex.format_estimate([0.5, None, 0.7, math.nan]) == "0.60 [0.00, 1.00] (n=2)"
+    assert ex.format_estimate([None, None]) == "–"
+
+
+def test_frames_to_threshold_formatting():
+    # reached: 400k, 500k; t(0.975, 1) = 12.706 x standard error 50k: [-185k, 1085k], clipped at 0
+    assert ex.format_frames([400e3, None, 500e3], 2e6) == "450k [0, 1.1M], 2/3 reached; 1 not by 2.0M"
+    assert ex.format_frames([300e3, 300e3], 4e5) == "300k [300k, 300k], 2/2 reached"
+    assert ex.format_frames([300e3], 4e5) == "300k, 1/1 reached"
+    assert ex.format_frames([None, None, None], 4e5) == "0/3 reached by 400k"
+    p = ex.welch_p([100.0, 110.0, 120.0], [400.0, 400.0, 390.0])
+    assert p == pytest.approx(stats.ttest_ind([100, 110, 120], [400, 400, 390], equal_var=False).pvalue)
+    assert ex.welch_p([1.0], [2.0, 3.0]) is None and ex.welch_p([4.0, 4.0], [4.0, 4.0]) is None
 
 
 def test_section_replaces_its_own_block_only(tmp_path):
@@ -77,48 +121,163 @@ def test_section_replaces_its_own_block_only(tmp_path):
     assert text.count("<!-- experiment aux cpu -->") == 1
 
 
-@pytest.fixture(scope="module")
-def tiny_experiment(tmp_path_factory):
-    root = tmp_path_factory.mktemp("experiments")
-    exp = ex.Experiment(
-        "tiny", "tiny comparison", "image_goals",
-        (ex.Variant("full"), ex.Variant("no depth", ("train.loss_weights.depth=0",)), ex.Variant("full again")),
-        threshold=0.9, cpu_threshold=0.5, evaluations=("train",),
-    )
-    # "no depth" was stopped before its first checkpoint: an empty checkpoint directory
-    stopped = next(run for run in ex.plan(exp, "cpu", [3], root / "runs", TINY) if run.variant.label == "no depth")
-    (stopped.workdir / "checkpoints").mkdir(parents=True)
+def test_trimmed_log_keeps_the_resumed_rows_and_few_bytes(tmp_path):
+    row = {"update": 0, "frames": 0, "fps": 1234.5678, "loss/actor": 0.0123456789, "success_rate": 0.30645161290322,
+           "episode_length": 92.48387096774194, "spl": math.nan, "episodes": 62}
+    rows = [{**row, "update": u, "frames": 320 * u} for u in (20, 40, 60, 40, 60, 80)]  # resumed at 40
+    trimmed = ex.trim_log(rows)
+    assert [r["update"] for r in trimmed] == [20, 40, 60, 80]
+    assert set(trimmed[0]) <= set(ex.STORED_COLUMNS) and "fps" not in trimmed[0]
+    assert trimmed[0]["success_rate"] == 0.3065 and math.isnan(trimmed[0]["spl"])
+
+
+# "b" differs from "a" only in bookkeeping, so it has its own runs but shares the compiled programs.
+TINY_VARIANTS = (ex.Variant("a"), ex.Variant("b", ("train.keep_checkpoints=2",)), ex.Variant("a again"))
+
+
+def tiny(variants=TINY_VARIANTS, name="tiny"):
+    return ex.Experiment(name, "tiny comparison", "image_goals", variants, threshold=0.9, cpu_threshold=0.5,
+                         evaluations=("train",))
+
+
+def run_tiny(root, exp=None, seeds=(0, 1), episodes=2, **kw):
     lines = []
-    summary = ex.run_experiment(exp, scale="cpu", seeds=[3], episodes=2, root=root / "runs", docs=root / "docs",
-                                overrides=TINY, command="tiny", compilation_cache=False, log=lines.append)
-    return exp, root, summary, lines
+    summary = ex.run_experiment(exp or tiny(), scale="cpu", seeds=seeds, episodes=episodes, root=root / "runs",
+                                docs=root / "docs", overrides=TINY, command="tiny", compilation_cache=False,
+                                log=lines.append, **kw)
+    return summary, lines
 
 
-def test_tiny_experiment_reports(tiny_experiment):
-    exp, root, summary, lines = tiny_experiment
-    # "full again" reuses "full"; "no depth", stopped before any checkpoint, starts from scratch
-    assert sorted(line.split(",")[0] for line in lines if line.startswith(("training ", "resuming "))) == [
-        "training full", "training no depth"]
-    assert set(summary["variants"]) == {"full", "no depth", "full again"}
-    full, again = summary["variants"]["full"], summary["variants"]["full again"]
-    assert full["workdirs"] == again["workdirs"] and full["seeds"] == [3]
-    assert full["frames"] == [16.0, 32.0]  # one log row per update of 4 envs x 4 steps
-    assert len(full["success_rate"]["mean"]) == 2 and full["success_rate"]["sem"] == [0.0, 0.0]
-    assert summary["threshold"] == 0.5 and summary["random"]["train"]["success_rate"] >= 0.0
+def same(a, b) -> bool:
+    """Equal, NaN included (a tiny run's log rows have no finished episode)."""
+    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def trained_runs(lines):
+    return sorted(line.split(" in ")[0] for line in lines if line.startswith(("training ", "resuming ")))
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("experiments")
+    # "b", seed 0, was stopped before its first checkpoint: an empty checkpoint directory
+    stopped = next(r for r in ex.plan(tiny(), "cpu", [0], root / "runs", TINY) if r.variant.label == "b")
+    (stopped.workdir / "checkpoints").mkdir(parents=True)
+    summary, lines = run_tiny(root)
+    return root, summary, lines, (root / "docs" / "results.md").read_text()
+
+
+@pytest.fixture(scope="module")
+def from_store(trained):
+    """The same experiment again after the work directories (checkpoints, logs) are deleted."""
+    root = trained[0]
+    shutil.rmtree(root / "runs")
+    summary, lines = run_tiny(root)
+    return summary, lines, (root / "docs" / "results.md").read_text()
+
+
+def test_tiny_experiment_trains_stores_and_reports(trained):
+    root, summary, lines, text = trained
+    # "a again" reuses "a"; "b", stopped before any checkpoint, starts from scratch
+    assert trained_runs(lines) == ["training a, seed 0", "training a, seed 1", "training b, seed 0",
+                                   "training b, seed 1"]
+    assert set(summary["variants"]) == {"a", "b", "a again"}
+    a, again = summary["variants"]["a"], summary["variants"]["a again"]
+    assert a["runs"] == again["runs"] and a["seeds"] == [0, 1]
+    assert a["frames"] == [16.0, 32.0]  # one log row per update of 4 envs x 4 steps
+    assert len(a["success_rate"]["mean"]) == 2 and len(a["frames_to_threshold"]) == 2
+    assert summary["threshold"] == 0.5
+    for policy in ("random", "oracle"):
+        assert 0.0 <= summary["baselines"][policy]["train"]["success_rate"] <= 1.0
     for v in summary["variants"].values():
         result = v["eval"]["train"]
-        assert len(result["success_rate"]) == 1 and 0.0 <= result["spl"][0] <= result["success_rate"][0] <= 1.0
-    saved = json.loads((root / "runs" / "cpu" / "tiny.json").read_text())
-    assert saved["variants"]["no depth"]["eval"] == summary["variants"]["no depth"]["eval"]
+        assert len(result["success_rate"]) == 2
+        assert all(0.0 <= spl <= s <= 1.0 for spl, s in zip(result["spl"], result["success_rate"]))
+    store = root / "docs" / "experiments" / "runs"
+    for rel in a["runs"] + summary["variants"]["b"]["runs"]:
+        d = store / rel
+        assert {p.name for p in d.iterdir()} == {"config.yaml", "variant.json", "metrics.jsonl", "eval_train_sample_2.json",
+                                                 "experiment_time.json", "done.json"}
+        done = json.loads((d / "done.json").read_text())
+        assert done["updates"] == 2 and done["frames"] == 32 and done["machine"] and done["date"]
+        assert set(json.loads((d / "metrics.jsonl").read_text().splitlines()[0])) <= set(ex.STORED_COLUMNS)
+    baselines = {p.name.rsplit("_", 1)[0] for p in (store / "cpu" / "image_goals" / "baselines").iterdir()}
+    assert baselines == {"random_train_2", "oracle_train_2"}
+    assert json.loads((store / "cpu" / "tiny.json").read_text())["variants"]["b"]["eval"] == summary["variants"]["b"]["eval"]
     assert (root / "docs" / "experiments" / "tiny_cpu.png").stat().st_size > 0
-    text = (root / "docs" / "results.md").read_text()
-    assert "<!-- experiment tiny cpu -->" in text and "| no depth |" in text and "uniformly random policy" in text
+    assert "<!-- experiment tiny cpu -->" in text and "| b |" in text
+    assert "| uniformly random policy | – | – |" in text and "| shortest-path oracle | – | – |" in text
+    assert "95% t-interval" in text and "Seeds: 0, 1 (2 runs per variant)" in text
 
 
-def test_tiny_experiment_resumes_without_training(tiny_experiment):
-    exp, root, summary, _ = tiny_experiment
-    lines = []
-    again = ex.run_experiment(exp, scale="cpu", seeds=[3], episodes=2, root=root / "runs", docs=root / "docs",
-                              overrides=TINY, command="tiny", compilation_cache=False, log=lines.append)
-    assert not any(line.startswith(("training ", "resuming ")) for line in lines)
-    assert again["variants"]["no depth"]["eval"] == summary["variants"]["no depth"]["eval"]
+def test_listing_counts_stored_seeds(trained, monkeypatch, capsys):
+    root = trained[0]
+    monkeypatch.setitem(ex.EXPERIMENTS, "tiny", tiny())
+    cli.main(["--list", "tiny", "--scale", "cpu", "--docs", str(root / "docs"), "--set", *TINY])
+    out = capsys.readouterr().out
+    assert "cpu   a: 2 stored (seeds 0, 1)" in out and "cpu   b: 2 stored (seeds 0, 1)" in out
+
+
+def test_store_alone_reproduces_the_results(trained, from_store):
+    root, summary, _, text = trained
+    again, lines, text_again = from_store
+    assert not any((root / "runs").rglob("checkpoints"))
+    assert trained_runs(lines) == [] and not any(line.startswith("evaluating") for line in lines)
+    for key in ("frames", "success_rate", "episode_length", "frames_to_threshold", "final_success", "eval"):
+        for label in summary["variants"]:
+            assert same(again["variants"][label][key], summary["variants"][label][key]), (label, key)
+    assert same(again["baselines"], summary["baselines"])
+    assert text_again == text
+
+
+def test_missing_evaluation_needs_the_checkpoint(trained, from_store, monkeypatch, capsys):
+    root = trained[0]
+    with pytest.raises(ex.ExperimentError, match=r"a, seed 0 .*eval_train_sample_2.json.*final checkpoint"):
+        run_tiny(root, episodes=3)
+    monkeypatch.setitem(ex.EXPERIMENTS, "tiny", tiny())
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["tiny", "--seeds", "0", "1", "--episodes", "3", "--docs", str(root / "docs"), "--root",
+                  str(root / "runs"), "--set", *TINY])
+    assert exit_info.value.code == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 1 and errors[0].startswith("error: a, seed 0 (")
+    summary, lines = run_tiny(root, episodes=3, skip_missing=True)
+    assert summary["variants"]["a"]["eval"]["train"]["success_rate"] == [None, None]
+    assert any(line.startswith("skipped: a, seed 0") for line in lines)
+    section = (root / "docs" / "results.md").read_text()
+    assert "| a | " in section and "| – | – |" in section
+    assert summary["variants"]["a"]["final_success"] == from_store[0]["variants"]["a"]["final_success"]
+
+
+def test_an_added_seed_trains_only_that_seed(trained, from_store):
+    root = trained[0]
+    one = tiny((ex.Variant("a"),), name="tiny_a")
+    summary, lines = run_tiny(root, one, seeds=(0, 1, 2))
+    assert trained_runs(lines) == ["training a, seed 2"]
+    assert summary["variants"]["a"]["seeds"] == [0, 1, 2] and len(summary["variants"]["a"]["eval"]["train"]["spl"]) == 3
+    assert "3 runs per variant" in (root / "docs" / "results.md").read_text()
+    assert ex.stored_seeds(one, "cpu", root / "docs" / "experiments" / "runs", TINY) == {"a": [0, 1, 2]}
+
+
+def test_a_run_stored_before_new_configuration_keys_is_found(trained, from_store, tmp_path):
+    store = tmp_path / "store"
+    shutil.copytree(trained[0] / "docs" / "experiments" / "runs", store)
+    exp = tiny((ex.Variant("a"),))
+    primary = ex.plan(exp, "cpu", [0, 1], tmp_path / "runs", TINY, store)
+    old = primary[0].stored.parent.rename(primary[0].stored.parent.with_name("0000aaaa"))
+
+    def drop(config, key):
+        config.write_text("".join(line for line in config.read_text().splitlines(True)
+                                  if not line.strip().startswith(f"{key}:")))
+
+    # seed 0 was stored before train.grad_norm_every existed: its default is the old behaviour
+    drop(old / "seed_0" / "config.yaml", "grad_norm_every")
+    # seed 1 before env.success_heading_deg: its legacy value (any heading) is another task
+    drop(old / "seed_1" / "config.yaml", "grad_norm_every")
+    drop(old / "seed_1" / "config.yaml", "success_heading_deg")
+    s0, s1 = ex.plan(exp, "cpu", [0, 1], tmp_path / "runs", TINY, store)
+    assert s0.is_stored() and s0.stored == old / "seed_0" and s0.workdir == tmp_path / "runs" / s0.relative
+    assert s0.relative.split("/")[2] == "0000aaaa"
+    assert not s1.is_stored() and s1.stored == primary[1].stored
+    seeds = ex.stored_seeds(exp, "cpu", store, TINY)["a"]
+    assert 0 in seeds and 1 not in seeds
