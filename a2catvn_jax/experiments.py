@@ -80,6 +80,9 @@ def main(argv=None) -> None:
     parser.add_argument("--docs", default="docs", help="where results.md and the plots go")
     parser.add_argument("--skip-missing", action="store_true",
                         help="leave out evaluations that a stored run lacks and whose checkpoint is not here")
+    parser.add_argument("--train-only", nargs="+", metavar="LABEL", default=None,
+                        help="train only these variants (labels as --list shows them); the report waits until "
+                             "every run is stored")
     cli.add_config_args(parser, config=False,
                         help="configuration changes applied to every variant (they change the runs' names)")
     args = parser.parse_args(argv)
@@ -106,7 +109,7 @@ def main(argv=None) -> None:
                                       + "; ".join(f"{label}: {len(s)}" for label, s in stored.items()) + ")")
         ex.run_experiment(exp, scale=scale, seeds=run_seeds, episodes=args.episodes, root=args.root, docs=args.docs,
                        store=store, overrides=cli.overrides_of(args), command=command.strip(),
-                       threshold=args.threshold, skip_missing=args.skip_missing)
+                       threshold=args.threshold, skip_missing=args.skip_missing, train_only=args.train_only)
 
 
 if __name__ == "__main__":

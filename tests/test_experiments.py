@@ -281,3 +281,18 @@ def test_a_run_stored_before_new_configuration_keys_is_found(trained, from_store
     assert not s1.is_stored() and s1.stored == primary[1].stored
     seeds = ex.stored_seeds(exp, "cpu", store, TINY)["a"]
     assert 0 in seeds and 1 not in seeds
+
+
+def test_train_only_some_variants(trained, from_store, monkeypatch):
+    """`train_only` trains the named variants' missing runs and reports nothing while
+    other variants' runs are missing; an unknown label is an error naming the variants."""
+    root = trained[0]
+    with pytest.raises(ex.ExperimentError, match=r"tiny has no variant 'c'; its variants: 'a', 'b', 'a again'"):
+        run_tiny(root, train_only=["c"])
+    monkeypatch.setattr(ex, "train_run", lambda run, log: pytest.fail(f"trained {run.name}"))
+    summary, lines = run_tiny(root, seeds=(0, 1, 3), train_only=[])
+    assert summary["experiment"] == "tiny" and set(summary) == {"experiment", "pending"}
+    assert sorted(summary["pending"]) == ["a again, seed 3", "a, seed 3", "b, seed 3"]
+    assert lines[-1].startswith("not reported: 3 run(s)")
+    summary, _ = run_tiny(root, seeds=(0, 1), train_only=["b"])  # all stored: reported as before
+    assert summary["variants"]["b"]["seeds"] == [0, 1]

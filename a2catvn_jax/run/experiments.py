@@ -847,7 +847,7 @@ def _compilation_cache(directory: Path) -> None:
 def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] = DEFAULT_SEEDS, episodes: int = 100,
                    root=DEFAULT_ROOT, docs="docs", store=None, overrides: Sequence[str] = (), command: str = "",
                    threshold: Optional[float] = None, skip_missing: bool = False, compilation_cache: bool = True,
-                   log: Optional[Callable[[str], None]] = None) -> dict:
+                   train_only: Optional[Sequence[str]] = None, log: Optional[Callable[[str], None]] = None) -> dict:
     """Train, evaluate, store and report `exp`; returns its summary (also written as JSON).
 
     Runs stored in `store` (default DOCS/experiments/runs) are not trained again, and
@@ -856,6 +856,10 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
     at this scale; `skip_missing` leaves out evaluations a stored run lacks and cannot
     make here (no checkpoint) instead of raising `ExperimentError`; `compilation_cache`
     keeps compiled programs in ROOT/.jax_cache (a process-wide JAX setting).
+    `train_only` (variant labels) trains only those variants' runs; while runs of the
+    others are neither stored nor trained, nothing is reported and the summary is
+    {"experiment": name, "pending": [run names]}: a long experiment can be trained a
+    variant at a time, across sittings and machines, through the store.
     """
     log = log or functools.partial(print, flush=True)
     if not seeds:
@@ -869,6 +873,11 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
         raise ExperimentError(f"threshold must be in (0, 1], got {threshold}")
     docs = Path(docs)
     store = docs / "experiments" / "runs" if store is None else Path(store)
+    labels = [v.label for v in exp.variants]
+    unknown = [label for label in train_only or () if label not in labels]
+    if unknown:
+        raise ExperimentError(f"{exp.name} has no variant {', '.join(map(repr, unknown))}; its variants: "
+                              + ", ".join(map(repr, labels)))
     t0 = time.perf_counter()
     runs = plan(exp, scale, seeds, root, overrides, store)
     if compilation_cache:
@@ -876,7 +885,7 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
     stored = sum(r.is_stored() for r in runs)
     log(f"{exp.name}: {len(runs)} runs, {stored} stored in {store}, {len(runs) - stored} to train or finish")
     for i, run in enumerate(runs):
-        if run.is_stored():
+        if run.is_stored() or (train_only is not None and run.variant.label not in train_only):
             continue
         log(f"[{i + 1}/{len(runs)}] {run.name}")
         seconds = train_run(run, log)
@@ -885,6 +894,10 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
         results = evaluate_run(run, exp.evaluations, episodes, log=log)
         store_run(run, results, episodes)
         log(f"  stored in {run.stored}")
+    pending = [run.name for run in runs if not run.is_stored()]
+    if pending:
+        log(f"not reported: {len(pending)} run(s) neither stored nor trained now: {', '.join(pending)}")
+        return {"experiment": exp.name, "pending": pending}
     evals = {}
     for run in runs:
         for houses, result in evaluate_run(run, exp.evaluations, episodes, skip_missing=skip_missing, log=log).items():
