@@ -2,7 +2,7 @@
 
     python -m a2catvn_jax.evaluate --workdir DIR [--episodes 100] [--step N]
         [--houses train|held-out|new-targets] [--policy sample|greedy|random|oracle] [--video FILE.gif|.mp4]
-        [--video-episodes 2] [--out FILE.json] [--seed 0] [--set KEY=VALUE ...]
+        [--video-episodes 2] [--out FILE.json] [--seed 0] [--baselines] [--set KEY=VALUE ...]
     python -m a2catvn_jax.evaluate --config FILE --policy random|oracle [--episodes 100] [...]
 
 The parameters of a checkpoint of the run in DIR (the latest, or update N) are
@@ -55,6 +55,8 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default=None, metavar="FILE",
                         help="result JSON (default DIR/eval_<step>_<houses>_<policy>.json)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--baselines", action="store_true",
+                        help="also run the random policy and the shortest-path oracle in the same houses")
     cli.add_config_args(parser, help="evaluation settings, e.g. --set env.num_envs=32 env.max_episode_steps=500")
     args = parser.parse_args(argv)
     if (args.workdir is None) == (args.config is None):
@@ -78,7 +80,7 @@ def main(argv=None) -> None:
         else:
             result = evaluate(args.workdir, args.episodes, step=args.step, houses=args.houses, policy=args.policy,
                               seed=args.seed, overrides=cli.overrides_of(args), video=args.video,
-                              video_episodes=args.video_episodes)
+                              video_episodes=args.video_episodes, baselines=args.baselines)
     if args.out:
         out = Path(args.out)
     elif args.workdir is None:

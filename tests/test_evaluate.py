@@ -202,3 +202,14 @@ def test_baselines_need_no_run(run, tmp_path, capsys, monkeypatch):
         "without a run, --policy must be a baseline: random or oracle")
     assert _error(["--config", str(cfg_file), "--workdir", str(run)], capsys).endswith(
         "give --workdir DIR (a trained run) or --config FILE (a baseline without a run)")
+
+
+def test_evaluation_with_its_baselines(run):
+    """`baselines=True` adds the random policy's and the oracle's numbers, the same as
+    evaluating each policy on its own."""
+    result = evaluate(run, EPISODES, seed=1, baselines=True, log=quiet)
+    assert set(result["baselines"]) == {"random", "oracle"}
+    for policy, numbers in result["baselines"].items():
+        alone = evaluate(run, EPISODES, seed=1, policy=policy, log=quiet)
+        assert numbers == {k: alone[k] for k in ("success_rate", "spl", "episode_length")}
+    assert result["baselines"]["oracle"]["success_rate"] == 1.0

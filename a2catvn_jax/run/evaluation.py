@@ -110,6 +110,7 @@ def evaluate(
     overrides: Sequence[str] = (),
     video=None,
     video_episodes: int = 2,
+    baselines: bool = False,
     log: Callable[[str], None] = print,
 ) -> dict:
     """Evaluate checkpoint `step` (default: the latest) of the run in `workdir`.
@@ -118,8 +119,10 @@ def evaluate(
     frames), houses, scenes (names), policy, seed, complexity, num_envs,
     max_episode_steps, eval_frames (environment steps taken), episodes, success_rate,
     spl, episode_length and episode_return (means over the counted episodes),
-    per_episode (lists success, length, spl, return, start_distance), and video (its
-    path) when one is written. Raises `CheckpointError` (no run, no or unreadable
+    per_episode (lists success, length, spl, return, start_distance), video (its
+    path) when one is written, and with `baselines` the success rate, SPL and episode
+    length of the random policy and the shortest-path oracle in the same houses with the
+    same seed ({"random": {...}, "oracle": {...}}). Raises `CheckpointError` (no run, no or unreadable
     checkpoint), `ConfigError` (bad overrides), `ValueError` (bad arguments) and
     `VideoError`.
     """
@@ -130,8 +133,14 @@ def evaluate(
     env = make_env(run.cfg.env, houses)
     log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
     restored = run.restore(log)
-    return run_episodes(restored, env, houses, episodes, policy=policy, seed=seed, video=video,
-                        video_episodes=video_episodes, log=log)
+    result = run_episodes(restored, env, houses, episodes, policy=policy, seed=seed, video=video,
+                          video_episodes=video_episodes, log=log)
+    if baselines:
+        result["baselines"] = {}
+        for p in BASELINES:
+            r = run_episodes(None, env, houses, episodes, policy=p, seed=seed, log=log)
+            result["baselines"][p] = {k: r[k] for k in ("success_rate", "spl", "episode_length")}
+    return result
 
 
 def evaluate_sets(workdir, episodes: int = 100, *, houses: Sequence[str] = HOUSES, step: Optional[int] = None,
