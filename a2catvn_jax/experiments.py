@@ -6,6 +6,7 @@
     python -m a2catvn_jax.experiments --list [NAME ...] [--scale cpu|paper] [--store DIR]
 
 Experiments (`EXPERIMENTS`):
+  sight           A2CAT-VN vs the same agent blind on the quickstart task (configs/quickstart.yaml)
   aux             A2CAT-VN (pre-trained and not) vs A2C+UNREAL vs plain A2C, and a blind A2CAT-VN
   ablations       A2CAT-VN without one auxiliary loss at a time
   memory          LSTM vs frame stack (mazes, UNREAL auxiliary tasks)

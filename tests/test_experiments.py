@@ -47,6 +47,11 @@ def test_learning_by_sight_experiments():
         w = run.cfg.train.loss_weights
         assert getattr(w, loss) == 0 and all(getattr(w, other) > 0 for other in weights if other != loss)
     assert aux.threshold_at("cpu") == ablations.threshold_at("cpu") == gen.threshold_at("cpu") == 0.5
+    sight = ex.EXPERIMENTS["sight"]
+    assert sight.config_path("cpu") == sight.config_path("paper") == ex.CONFIGS / "quickstart.yaml"
+    seeing, blind = ex.plan(sight, "cpu", [0], "/r")
+    assert not seeing.cfg.agent.blind and blind.cfg.agent.blind
+    assert seeing.cfg == ex.load_config(ex.CONFIGS / "quickstart.yaml", ["seed=0"])
 
 
 def test_shared_variants_share_runs_and_seeds_do_not():

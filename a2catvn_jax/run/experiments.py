@@ -110,6 +110,7 @@ class Experiment:
     cpu_threshold: float = 0.5  # the same at CPU scale (short runs reach lower rates)
     evaluations: tuple[str, ...] = ("train", "new-targets", "held-out")
     paper: str = ""  # what the paper reports for this comparison
+    cpu_only: bool = False  # one configuration, configs/<config>.yaml, a CPU task at both scales
 
     def threshold_at(self, scale: str) -> float:
         return self.cpu_threshold if scale == "cpu" else self.threshold
@@ -117,10 +118,18 @@ class Experiment:
     def config_path(self, scale: str) -> Path:
         if scale not in SCALES:
             raise ExperimentError(f"scale must be one of {SCALES}, got {scale!r}")
-        return CONFIGS / (f"{self.config}_cpu.yaml" if scale == "cpu" else f"{self.config}.yaml")
+        cpu = scale == "cpu" and not self.cpu_only
+        return CONFIGS / (f"{self.config}_cpu.yaml" if cpu else f"{self.config}.yaml")
 
 
 EXPERIMENTS = {e.name: e for e in (
+    Experiment(
+        "sight", "A2CAT-VN vs the same agent blind on the quickstart task", "quickstart",
+        (Variant("A2CAT-VN"), Variant("blind A2CAT-VN", BLIND)),
+        cpu_threshold=0.7, evaluations=("train",), cpu_only=True,
+        paper="Not in the paper. The blind agent's network sees zero images: what it reaches needs no sight, "
+              "so the gap between the two is what the images are used for.",
+    ),
     Experiment(
         "aux", "A2CAT-VN vs A2C+UNREAL vs A2C, and a blind A2CAT-VN", "image_goals",
         (Variant("A2CAT-VN (pre-trained)", pretrain=True), Variant("A2CAT-VN"), Variant("A2C+UNREAL", NO_VN),
