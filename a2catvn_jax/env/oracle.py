@@ -44,13 +44,11 @@ def _act(env: NavEnv, w: WorldArrays, scene, goal, pose, key):
     res = env.cfg.grid_resolution
     field = w.oracle_dist[scene, goal]
 
-    def dist_at(p):
-        i, j = rects.cell_of(p[:2], w.grid_origin[scene], res, field.shape)
-        return field[i, j]
+    def cell(p):
+        return rects.cell_of(p[:2], w.grid_origin[scene], res, field.shape)
 
-    def yaw_at(p):
-        i, j = rects.cell_of(p[:2], w.grid_origin[scene], res, field.shape)
-        return w.oracle_yaw[scene, goal, i, j]
+    def dist_at(p):
+        return field[cell(p)]
 
     A = moves.shape[0]
     forward = jnp.argmax(moves[:, 0])
@@ -59,7 +57,8 @@ def _act(env: NavEnv, w: WorldArrays, scene, goal, pose, key):
     turns = moves[:, 2] != 0
     # A turn is worth the best move forward after turning that way 1 .. n times (n turns
     # make half a circle); each further turn costs a little, turns walk no distance.
-    n = int(np.ceil(np.pi / np.min(np.abs(env.moves[:, 2][env.moves[:, 2] != 0]))))
+    smallest_turn = float(np.min(np.abs(env.moves[:, 2][env.moves[:, 2] != 0])))
+    n = int(np.ceil(np.pi / smallest_turn))
     k = jnp.arange(1, n + 1, dtype=jnp.float32)
 
     def after_turns(rotation):
@@ -82,8 +81,8 @@ def _act(env: NavEnv, w: WorldArrays, scene, goal, pose, key):
     stuck = ~jnp.isfinite(score[best])
     travel = jnp.where(stuck, jax.random.randint(key, (), 0, A), best)
     # Where it should be: face the right way, then step forward.
-    off = jnp.arctan2(jnp.sin(yaw_at(pose) - pose[2]), jnp.cos(yaw_at(pose) - pose[2]))
-    half_turn = jnp.min(jnp.where(turns, jnp.abs(moves[:, 2]), jnp.inf)) / 2
+    wanted = w.oracle_yaw[scene, goal][cell(pose)]
+    off = jnp.arctan2(jnp.sin(wanted - pose[2]), jnp.cos(wanted - pose[2]))
     turn = jnp.argmax(turns & (jnp.sign(moves[:, 2]) == jnp.sign(off)))
-    arrived = jnp.where(jnp.abs(off) > half_turn, turn, forward)
+    arrived = jnp.where(jnp.abs(off) > smallest_turn / 2, turn, forward)
     return jnp.where(here <= 0, arrived, travel).astype(jnp.int32)
