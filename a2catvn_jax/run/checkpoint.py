@@ -175,6 +175,9 @@ class Checkpointer:
     def _restore_state(self, path, step: int, args):
         previous_hook = sys.unraisablehook
         sys.unraisablehook = _skip_closed_loop_errors(previous_hook)
+        # Before the restore, not after it fails: a read that fails early can be collected, and
+        # reported, while the restore is still running.
+        silence_abandoned_reads()
         try:
             with warnings.catch_warnings():  # orbax warns that no sharding was given: arrays go to the default device
                 warnings.simplefilter("ignore", UserWarning)
@@ -182,7 +185,6 @@ class Checkpointer:
             sys.unraisablehook = previous_hook
         except Exception as e:  # noqa: BLE001
             # The hook stays: reads abandoned by the failed restore may still finish later.
-            silence_abandoned_reads()
             raise CheckpointError(
                 f"{path}: the checkpoint is corrupt or does not match this configuration "
                 f"({type(e).__name__}: {_short(str(e))})"
@@ -280,8 +282,8 @@ def _skip_closed_loop_errors(previous):
 
 
 def silence_abandoned_reads() -> None:
-    """After a failed orbax restore: its other asynchronous reads were abandoned, and Python
-    reports each when it is collected, often at exit, as a "coroutine ... was never awaited"
+    """For an orbax restore: when one of its asynchronous reads fails, the others are abandoned,
+    and Python reports each when it is collected, often at exit, as a "coroutine ... was never awaited"
     warning or an asyncio "Task exception was never retrieved" traceback raised in orbax.
     Drop those reports, so that the restore's error is all a user sees."""
     warnings.filterwarnings("ignore", message=r"coroutine .* was never awaited", category=RuntimeWarning)

@@ -145,11 +145,11 @@ def load_matching(params, pretrained_dir):
     path = Path(pretrained_dir) / PRETRAINED_DIR
     if not path.is_dir():
         raise PretrainError(f"{pretrained_dir}: no pre-trained parameters (missing {PRETRAINED_DIR}/)")
+    silence_abandoned_reads()
     try:
         with ocp.StandardCheckpointer() as checkpointer:
             saved = checkpointer.restore(path.absolute())
     except Exception as e:  # noqa: BLE001 - orbax raises many kinds
-        silence_abandoned_reads()
         raise PretrainError(f"{path}: cannot read the pre-trained parameters ({type(e).__name__})") from None
     flat_saved = {jax.tree_util.keystr(p): v for p, v in jax.tree_util.tree_leaves_with_path(saved)}
     loaded, kept = [], []
