@@ -52,6 +52,9 @@ def test_learning_by_sight_experiments():
     seeing, blind = ex.plan(sight, "cpu", [0], "/r")
     assert not seeing.cfg.agent.blind and blind.cfg.agent.blind
     assert seeing.cfg == ex.load_config(ex.CONFIGS / "quickstart.yaml", ["seed=0"])
+    # the stored seeds and the listing look for its runs under the same single configuration
+    assert ex.stored_seeds(sight, "cpu", "/nonexistent") == {"A2CAT-VN": [], "blind A2CAT-VN": []}
+    assert "(configs/quickstart.yaml;" in ex.listing("/nonexistent", names=["sight"])
 
 
 def test_shared_variants_share_runs_and_seeds_do_not():

@@ -274,7 +274,7 @@ def stored_runs(exp: Experiment, scale: str, store=DEFAULT_STORE, overrides: Seq
     candidates = sorted({int(d.name[5:]) for d in base.glob("*/seed_*") if d.name[5:].isdigit() and (d / DONE).is_file()})
     out = {}
     for variant in exp.variants:
-        out[variant.label] = {r.seed: r.stored for r in plan(Experiment(exp.name, exp.title, exp.config, (variant,)),
+        out[variant.label] = {r.seed: r.stored for r in plan(dataclasses.replace(exp, variants=(variant,)),
                                                              scale, candidates, store=store, overrides=overrides)
                               if r.is_stored()}
     return out
@@ -817,7 +817,8 @@ def listing(store=DEFAULT_STORE, scales: Sequence[str] = SCALES, names: Optional
     for exp in EXPERIMENTS.values():
         if names and exp.name not in names:
             continue
-        lines.append(f"{exp.name}: {exp.title} (configs/{exp.config}[_cpu].yaml; success threshold "
+        configs = f"{exp.config}.yaml" if exp.cpu_only else f"{exp.config}[_cpu].yaml"
+        lines.append(f"{exp.name}: {exp.title} (configs/{configs}; success threshold "
                      f"{exp.threshold:g}, {exp.cpu_threshold:g} at CPU scale)")
         for scale in scales:
             stored = stored_runs(exp, scale, store, overrides)
