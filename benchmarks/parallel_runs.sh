@@ -8,7 +8,10 @@
 #   benchmarks/parallel_runs.sh NAME STORE LOGS JOBS DEADLINE SEED:LABEL [SEED:LABEL ...]
 #   benchmarks/parallel_runs.sh sight /tmp/store /tmp/logs 4 480 2:A2CAT-VN "2:blind A2CAT-VN"
 #
-# On a GPU, set XLA_PYTHON_CLIENT_PREALLOCATE=false so that the processes share its memory.
+# On one GPU use JOBS=1: one quickstart run alone trains at about 25k frames/s on an H200,
+# while six at once took 3 minutes to compile and then shared the GPU so badly that none
+# finished 1.5M frames in 4.5 minutes (docs/benchmarks.md). With JOBS > 1 on a GPU, set
+# XLA_PYTHON_CLIENT_PREALLOCATE=false so that the processes share its memory.
 # RUNNER_ARGS is added to every runner's command line (e.g. "--episodes 20").
 set -u
 name=$1 store=$2 logs=$3 jobs=$4 deadline=$5
