@@ -52,6 +52,12 @@ def test_learning_by_sight_experiments():
     seeing, blind = ex.plan(sight, "cpu", [0], "/r")
     assert not seeing.cfg.agent.blind and blind.cfg.agent.blind
     assert seeing.cfg == ex.load_config(ex.CONFIGS / "quickstart.yaml", ["seed=0"])
+    aux_qs = ex.EXPERIMENTS["aux_quickstart"]
+    runs = {r.variant.label: r for r in ex.plan(aux_qs, "cpu", [0], "/r")}
+    assert runs["A2CAT-VN"].workdir == seeing.workdir  # shares the sight experiment's runs
+    assert runs["A2CAT-VN (pre-trained)"].variant.pretrain and runs["A2CAT-VN (pre-trained)"].cfg.pretrain.epochs == 10
+    assert runs["A2C"].cfg.train.loss_weights.reward_prediction == 0 and runs["A2C+UNREAL"].cfg.train.loss_weights.depth == 0
+    assert runs["A2C+UNREAL"].cfg.train.loss_weights.pixel_control > 0
     # the stored seeds and the listing look for its runs under the same single configuration
     assert ex.stored_seeds(sight, "cpu", "/nonexistent") == {"A2CAT-VN": [], "blind A2CAT-VN": []}
     assert "(configs/quickstart.yaml;" in ex.listing("/nonexistent", names=["sight"])
