@@ -9,11 +9,16 @@ _ROOT = str(Path(__file__).resolve().parents[1])
 if _ROOT not in sys.path:
     sys.path.insert(0, _ROOT)
 
-# One compilation cache for the whole session, subprocesses (the command-line tests)
-# included: tests that build the same tiny configuration compile its programs once.
-# Set before anything imports JAX; a fresh directory, so no test sees an older session's.
-_CACHE = tempfile.mkdtemp(prefix="a2catvn-jax-cache-")
-atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+# One compilation cache for the whole session, the pytest-xdist workers and subprocesses
+# (the command-line tests) included: tests that build the same tiny configuration compile
+# its programs once. Set before anything imports JAX; a fresh directory, so no test sees an
+# older session's. The first process to load this file (the xdist controller, or pytest
+# alone) makes it and removes it at exit; the workers it starts inherit the variable.
+_CACHE = os.environ.get("A2CATVN_TEST_JAX_CACHE")
+if _CACHE is None or not os.path.isdir(_CACHE):
+    _CACHE = tempfile.mkdtemp(prefix="a2catvn-jax-cache-")
+    os.environ["A2CATVN_TEST_JAX_CACHE"] = _CACHE
+    atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "-1"
