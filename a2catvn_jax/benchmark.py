@@ -4,6 +4,8 @@
     python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
         [--networks default configs/presets/authors_network.yaml]
+    python -m a2catvn_jax.benchmark profile [--configs quickstart image_goals_cpu paper] [--updates 5]
+        [--networks default configs/presets/authors_network.yaml]
 
 `env`: frames/s of `NavEnv.step` (one frame = one agent step with its RGB, depth and
 segmentation rendered) in a multi-room house, for each batch size and resolution,
@@ -23,6 +25,14 @@ stream once per distinct target), with both streams computed for every frame, an
 the same network in PyTorch (`pip install torch==2.13.0`), with the ratio. With
 `--networks`, each listed network in turn: `default` (the built-in one, compared with
 PyTorch) or a config file of agent keys such as `configs/presets/authors_network.yaml`.
+
+`profile`: milliseconds per update of each phase of the training update (rollout and
+the environment alone; the loss forward and forward + backward for plain A2C and for
+each auxiliary term on top of it; the optimiser; the whole update), for each
+configuration of `configs/` named by `--configs` (`paper` at `--paper-resolution`)
+with each network of `--networks`, and the share of a dense matrix product's
+floating-point rate (timed in the same run) that the update reaches
+(`bench/profile.py`).
 """
 
 from __future__ import annotations
@@ -36,7 +46,11 @@ import time
 import jax
 
 from a2catvn_jax import cli
+from a2catvn_jax.bench.profile import matmul_gflops, profile_update
 from a2catvn_jax.bench.throughput import bench_env, bench_mujoco_gl, bench_network, bench_train
+from a2catvn_jax.config import CONFIGS, load_config
+
+CONFIG_NAMES = sorted(p.stem for p in CONFIGS.glob("*.yaml") if p.stem != "default")
 
 
 def _header():
@@ -46,22 +60,24 @@ def _header():
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.benchmark", description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=["env", "train", "network"], help="what to benchmark")
+    parser.add_argument("what", choices=["env", "train", "network", "profile"], help="what to benchmark")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=[16, 64, 256, 1024], help="env")
     parser.add_argument("--resolutions", type=int, nargs="+", default=[64, 84, 174], help="env")
     parser.add_argument("--steps", type=int, default=5, help="env: timed steps per setting")
     parser.add_argument("--gl-frames", type=int, default=200, help="env: frames timed for MuJoCo's renderer")
     parser.add_argument("--no-gl", action="store_true", help="env: skip MuJoCo's OpenGL renderer")
     parser.add_argument("--max-pixels", type=float, default=3.2e7, help="env: skip settings with more batch*pixels")
-    parser.add_argument("--configs", nargs="+", choices=["quickstart", "paper"], default=["quickstart", "paper"], help="train")
-    parser.add_argument("--updates", type=int, default=5, help="train: timed updates per configuration")
-    parser.add_argument("--paper-resolution", type=int, default=84, help="train: image size of the paper-sized config")
+    parser.add_argument("--configs", nargs="+", choices=CONFIG_NAMES, default=["quickstart", "paper"],
+                        help="train, profile: configurations of configs/")
+    parser.add_argument("--updates", type=int, default=5, help="train, profile: timed updates (calls) per configuration")
+    parser.add_argument("--paper-resolution", type=int, default=84,
+                        help="train, profile: image size of the paper-sized config")
     parser.add_argument("--resolution", type=int, default=84, help="network: image size")
     parser.add_argument("--frames", type=int, default=320, help="network: (observation, target) pairs per pass")
     parser.add_argument("--targets", type=int, default=16, help="network: distinct targets among them")
     parser.add_argument("--repeats", type=int, default=5, help="network: timed passes")
     parser.add_argument("--networks", nargs="+", metavar="NET", default=["default"],
-                        help="network: the networks to time, side by side: default (the built-in network) or config "
+                        help="network, profile: the networks to time, side by side: default (the built-in network) or config "
                              "files of agent keys, e.g. --networks default configs/presets/authors_network.yaml")
     cli.add_config_args(parser, config=False, help="configuration changes applied to every benchmarked setting")
     parser.add_argument("--json", help="also write the results to this JSON file")
@@ -78,6 +94,8 @@ def main(argv=None) -> None:
                 rows.append(r)
                 print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
                       f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
+        elif args.what == "profile":
+            rows = _profile_table(args, overrides)
         elif args.what == "network":
             rows = []
             for name in args.networks:
@@ -102,6 +120,30 @@ def main(argv=None) -> None:
         if args.json:
             with open(args.json, "w") as f:
                 json.dump(rows, f, indent=1)
+
+
+def _profile_table(args, overrides) -> list:
+    peak = matmul_gflops()
+    print(f"dense float32 matrix product (1024x1024): {peak:.1f} GFLOP/s")
+    rows = []
+    for name in args.configs:
+        for network in args.networks:
+            files = [CONFIGS / f"{name}.yaml"] + ([] if network == "default" else [network])
+            extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
+            r = profile_update(load_config(files, extra + overrides), repeats=args.updates)
+            rows.append({"config": name, "network": network, "matmul_gflops_per_s": peak, **r})
+            print(f"\n{name}, network {network}: batch {r['batch']}, {r['resolution']} px, {r['frames_per_update']} frames "
+                  f"per update, {r['train_fps']:.0f} frames/s")
+            print(f"  {'phase':<62} {'ms/update':>10} {'share':>6}")
+            for phase, seconds in r["phases_s"].items():
+                print(f"  {phase:<62} {seconds * 1e3:10.1f} {seconds / r['update_s']:6.0%}")
+            print(f"  {'whole update':<62} {r['update_s'] * 1e3:10.1f} {1:6.0%}")
+            print(f"  {'  sum of rollout, whole loss fwd+bwd and optimiser':<62} {r['sum_of_phases_s'] * 1e3:10.1f} "
+                  f"{r['sum_of_phases_s'] / r['update_s']:6.0%}")
+            if r["update_gflops_per_s"]:
+                print(f"  {r['update_flops'] / 1e9:.2f} GFLOP per update (XLA's count): {r['update_gflops_per_s']:.1f} "
+                      f"GFLOP/s, {r['update_gflops_per_s'] / peak:.0%} of the matrix product's rate", flush=True)
+    return rows
 
 
 def _bench_env_table(args, overrides) -> list:

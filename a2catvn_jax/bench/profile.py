@@ -1,0 +1,134 @@
+"""Where one training update's time goes (`python -m a2catvn_jax.benchmark profile`).
+
+Each phase of `agent.update` is jitted and timed on its own, on the same state, in one
+process, so that the ratios come from one run:
+
+- the rollout (`update.collect`: the policy acts, the environment steps and renders, the
+  frames' ground truth is made, the rollout is written to the replay buffer), and the
+  environment alone (the same number of steps with random actions);
+- the loss, forward and forward + backward: plain A2C's terms (actor, critic, entropy),
+  then A2C plus each auxiliary term that the configuration weights, one at a time, whose
+  extra time over A2C is that term's cost, then every term together (the update's loss;
+  the off-policy critic and pixel control share one replayed unroll, so alone each pays
+  for it and together they pay once);
+- the optimiser (global-norm clip and RMSprop) on the gradients;
+- the whole update, whose time less the sum of the rollout, the whole loss's forward +
+  backward and the optimiser is what one program gains or loses over separate ones.
+
+It also reports XLA's count of floating-point operations in one update and the rate
+that reaches, against a dense float32 matrix product timed in the same run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from a2catvn_jax.agent import update as update_lib
+from a2catvn_jax.agent.networks import VN_HEADS, make_networks
+from a2catvn_jax.config import Config
+from a2catvn_jax.env import NavEnv
+
+AUX_TERMS = ("off_policy_critic", "pixel_control", "reward_prediction", *VN_HEADS)
+
+
+def _timed(fn, *args, repeats: int) -> float:
+    """Seconds per call of jitted `fn(*args)`, after one call that compiles it."""
+    jax.block_until_ready(fn(*args))
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        out = fn(*args)
+    jax.block_until_ready(out)
+    return (time.perf_counter() - t0) / repeats
+
+
+def _with_weights(cfg: Config, keep: tuple[str, ...]) -> Config:
+    """`cfg` with every auxiliary loss weight not in `keep` set to 0."""
+    weights = dataclasses.replace(cfg.train.loss_weights, **{t: 0.0 for t in AUX_TERMS if t not in keep})
+    return dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, loss_weights=weights))
+
+
+def matmul_gflops(size: int = 1024, repeats: int = 20) -> float:
+    """GFLOP/s of a dense float32 [size, size] x [size, size] product on the default device."""
+    a = jax.random.normal(jax.random.PRNGKey(0), (size, size), jnp.float32)
+    b = jax.random.normal(jax.random.PRNGKey(1), (size, size), jnp.float32)
+    seconds = _timed(jax.jit(jnp.matmul), a, b, repeats=repeats)
+    return 2 * size**3 / seconds / 1e9
+
+
+def profile_update(cfg: Config, repeats: int = 5) -> dict:
+    """Seconds per update of each phase (see the module docstring) of configuration `cfg`."""
+    env = NavEnv(cfg.env)
+    networks = make_networks(cfg, env.num_actions)
+    fns = update_lib.make_update(env, networks, cfg)
+    ts = fns.init(jax.random.PRNGKey(0))
+    ts, _ = fns.update(ts)  # compiles; the buffer now holds a rollout
+    jax.block_until_ready(ts)
+    targets = update_lib.targets_of(cfg, env)
+    frames = update_lib.frames_per_update(cfg)
+
+    collect = jax.jit(lambda ts: update_lib.collect(cfg, env, networks, targets, ts))
+    batch = collect(ts)
+    phases = {"rollout (environment + policy)": _timed(collect, ts, repeats=repeats)}
+
+    @jax.jit
+    def env_steps(state, key):
+        def body(s, k):
+            return env.step(s, jax.random.randint(k, (env.num_envs,), 0, env.num_actions)), None
+
+        return jax.lax.scan(body, state, jax.random.split(key, cfg.train.rollout_length))[0]
+
+    phases["  of which the environment alone"] = _timed(env_steps, batch.env_state, jax.random.PRNGKey(1),
+                                                        repeats=repeats)
+
+    def loss_fns(c: Config):
+        loss = lambda params, args: update_lib.loss(c, networks, targets, params, *args)[0]  # noqa: E731
+        return jax.jit(loss), jax.jit(jax.value_and_grad(loss))
+
+    args = batch.loss_args
+    w = cfg.train.loss_weights
+    on = tuple(t for t in AUX_TERMS if getattr(w, t) > 0)
+    a2c_fwd, a2c_fb = loss_fns(_with_weights(cfg, ()))
+    phases["loss: A2C (actor, critic, entropy), forward"] = _timed(a2c_fwd, ts.params, args, repeats=repeats)
+    a2c = phases["loss: A2C (actor, critic, entropy), forward + backward"] = _timed(a2c_fb, ts.params, args,
+                                                                                   repeats=repeats)
+    for term in on:
+        _, fb = loss_fns(_with_weights(cfg, (term,)))
+        phases[f"loss: + {term.replace('_', ' ')}, forward + backward"] = _timed(fb, ts.params, args,
+                                                                                 repeats=repeats) - a2c
+    all_fwd, all_fb = loss_fns(cfg)
+    if on:
+        phases["loss: every term, forward"] = _timed(all_fwd, ts.params, args, repeats=repeats)
+        phases["loss: every term, forward + backward"] = _timed(all_fb, ts.params, args, repeats=repeats)
+    _, grads = all_fb(ts.params, args)
+    optimizer = update_lib.make_optimizer(cfg)
+
+    @jax.jit
+    def step(grads, opt_state, params):
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state
+
+    phases["optimiser (clip + RMSprop)"] = _timed(step, grads, ts.opt_state, ts.params, repeats=repeats)
+
+    # the whole update donates its argument: time it on a fresh state each call
+    update = fns.update
+    jax.block_until_ready(ts)
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        ts, metrics = update(ts)
+    jax.block_until_ready(metrics)
+    whole = (time.perf_counter() - t0) / repeats
+    parts = (phases["rollout (environment + policy)"] + phases["optimiser (clip + RMSprop)"]
+             + phases["loss: every term, forward + backward" if on else "loss: A2C (actor, critic, entropy), forward + backward"])
+    cost = update.lower(ts).cost_analysis()  # XLA's count for the program, before it is compiled again
+    flops = (cost[0] if isinstance(cost, (list, tuple)) else cost or {}).get("flops")
+    return {
+        "batch": env.num_envs, "resolution": cfg.env.render.image_size, "rollout_length": cfg.train.rollout_length,
+        "frames_per_update": frames, "phases_s": phases, "update_s": whole, "sum_of_phases_s": parts,
+        "train_fps": frames / whole, "update_flops": flops,
+        "update_gflops_per_s": flops / whole / 1e9 if flops else None,
+    }
