@@ -3,8 +3,11 @@ the whole (A2C with one auxiliary term, on the tiny learner, to keep compiles fe
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
+
 from a2catvn_jax import benchmark
-from a2catvn_jax.bench.profile import AUX_TERMS, profile_update
+from a2catvn_jax.bench.profile import AUX_TERMS, matmul_flops, profile_update
 from a2catvn_jax.config import load_config
 from tiny import TINY_LEARNER
 
@@ -25,7 +28,21 @@ def test_profile_times_every_phase_of_the_update():
     assert r["frames_per_update"] == 4 * 4 and r["train_fps"] == r["frames_per_update"] / r["update_s"]
     assert r["sum_of_phases_s"] == (phases["rollout (environment + policy)"] + phases["optimiser (clip + RMSprop)"]
                                     + phases["loss: every term, forward + backward"])
-    assert r["update_flops"] > 0 and r["update_gflops_per_s"] > 0
+    assert r["update_matmul_flops"] > 0 and r["update_gflops_per_s"] > 0 and not r["flops_lower_bound"]
+
+
+def test_flop_count_multiplies_loops_and_matches_xla_without_them():
+    a = jnp.ones((64, 64))
+    ten = lambda a: jax.lax.scan(lambda c, _: (c @ a, None), a, None, length=10)[0]  # noqa: E731
+    assert matmul_flops(ten, a) == (10 * 2 * 64**3, False)
+    x, k = jnp.ones((2, 16, 16, 3)), jnp.ones((3, 3, 3, 8))
+    conv = lambda x, k: jax.lax.conv_general_dilated(x, k, (1, 1), "VALID",  # noqa: E731
+                                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    cost = jax.jit(conv).lower(x, k).cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    assert matmul_flops(conv, x, k) == (2 * 2 * 14 * 14 * 8 * 3 * 9, False) and cost["flops"] == 2 * 2 * 14 * 14 * 8 * 3 * 9
+    loop = lambda a: jax.lax.while_loop(lambda c: c[1] < 3, lambda c: (c[0] @ a, c[1] + 1), (a, 0))[0]  # noqa: E731
+    assert matmul_flops(loop, a) == (2 * 64**3, True)  # counted once, flagged
 
 
 def test_profile_command_names_every_configuration():
