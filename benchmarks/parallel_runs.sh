@@ -18,6 +18,8 @@ name=$1 store=$2 logs=$3 jobs=$4 deadline=$5
 shift 5
 mkdir -p "$store" "$logs"
 python=${PYTHON:-python3}
+# Runs of one configuration compile the same programs: keep them in a persistent cache.
+export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-${ROOT:-runs/experiments}/.jax_cache}
 start=$(date +%s)
 for job in "$@"; do
   seed=${job%%:*} label=${job#*:}
