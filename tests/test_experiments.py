@@ -201,6 +201,8 @@ def test_tiny_experiment_trains_stores_and_reports(trained):
     assert a["frames"] == [16.0, 32.0]  # one log row per update of 4 envs x 4 steps
     assert len(a["success_rate"]["mean"]) == 2 and len(a["frames_to_threshold"]) == 2
     assert summary["threshold"] == 0.5
+    assert a["welch_p_eval_success_vs_first"] is None
+    assert set(summary["variants"]["b"]["welch_p_eval_success_vs_first"]) == {"train"}
     for policy in ("random", "oracle"):
         assert 0.0 <= summary["baselines"][policy]["train"]["success_rate"] <= 1.0
     for v in summary["variants"].values():

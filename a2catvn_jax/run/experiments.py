@@ -608,7 +608,7 @@ def summarise(exp: Experiment, runs: list[Run], evals: dict, baseline: dict, thr
     """Per variant, from the stored runs: curves (mean and 95% t-band), frames to
     threshold, final training success and evaluation numbers, each per seed."""
     variants = {}
-    first_frames = None
+    first_frames = first_eval = None
     for variant in exp.variants:
         mine = [r for r in runs if r.variant == variant]
         logs = [stored_log(r) for r in mine]
@@ -633,6 +633,11 @@ def summarise(exp: Experiment, runs: list[Run], evals: dict, baseline: dict, thr
         entry["training_seconds"] = [training_seconds(r) for r in mine]
         entry["eval"] = {h: {m: [None if evals[(r.relative, h)] is None else evals[(r.relative, h)][m] for r in mine]
                              for m in ("success_rate", "spl")} for h in exp.evaluations}
+        if first_eval is None:
+            first_eval = entry["eval"]
+        entry["welch_p_eval_success_vs_first"] = None if variant == exp.variants[0] else {
+            h: welch_p(*([v for v in e[h]["success_rate"] if v is not None] for e in (first_eval, entry["eval"])))
+            for h in exp.evaluations}
         done = [done_record(r) for r in mine]
         entry["trained"] = [{"date": d.get("date"), "machine": d.get("machine"), "git": d.get("git")} for d in done]
         variants[variant.label] = entry
@@ -802,6 +807,13 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         lines += ["", f"Welch's t-test on frames to threshold against {first}, a run that never reaches it counted "
                       f"at the run's last frame: " + "; ".join(f"{label} p = {'–' if p is None else f'{p:.2g}'}"
                                                               for label, p in tests) + "."]
+    first = next(iter(summary["variants"]))
+    for h in evaluations:
+        tests = [(label, (v.get("welch_p_eval_success_vs_first") or {}).get(h))
+                 for label, v in summary["variants"].items()][1:]
+        if tests and any(p is not None for _, p in tests):
+            lines += ["", f"Welch's t-test on evaluation success ({EVAL_SETS[h]}) against {first}: "
+                      + "; ".join(f"{label} p = {'–' if p is None else f'{p:.2g}'}" for label, p in tests) + "."]
     if exp.paper:
         lines += ["", f"The paper: {exp.paper}"]
     return "\n".join(lines)
