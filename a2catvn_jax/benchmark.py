@@ -123,27 +123,30 @@ def main(argv=None) -> None:
 
 
 def _profile_table(args, overrides) -> list:
+    settings = []  # every configuration loaded (and checked) before anything is timed
+    for name in args.configs:
+        extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
+        for network in args.networks:
+            files = [CONFIGS / f"{name}.yaml"] + ([] if network == "default" else [network])
+            settings.append((name, network, load_config(files, extra + overrides)))
     peak = matmul_gflops()
     print(f"dense float32 matrix product (1024x1024): {peak:.1f} GFLOP/s")
     rows = []
-    for name in args.configs:
-        for network in args.networks:
-            files = [CONFIGS / f"{name}.yaml"] + ([] if network == "default" else [network])
-            extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
-            r = profile_update(load_config(files, extra + overrides), repeats=args.updates)
-            rows.append({"config": name, "network": network, "matmul_gflops_per_s": peak, **r})
-            print(f"\n{name}, network {network}: batch {r['batch']}, {r['resolution']} px, {r['frames_per_update']} frames "
-                  f"per update, {r['train_fps']:.0f} frames/s")
-            print(f"  {'phase':<62} {'ms/update':>10} {'share':>6}")
-            for phase, seconds in r["phases_s"].items():
-                print(f"  {phase:<62} {seconds * 1e3:10.1f} {seconds / r['update_s']:6.0%}")
-            print(f"  {'whole update':<62} {r['update_s'] * 1e3:10.1f} {1:6.0%}")
-            print(f"  {'  sum of rollout, whole loss fwd+bwd and optimiser':<62} {r['sum_of_phases_s'] * 1e3:10.1f} "
-                  f"{r['sum_of_phases_s'] / r['update_s']:6.0%}")
-            bound = " at least" if r["flops_lower_bound"] else ""
-            print(f"  {r['update_matmul_flops'] / 1e9:.2f}{bound} GFLOP of matrix products and convolutions per update: "
-                  f"{r['update_gflops_per_s']:.1f} GFLOP/s, {r['update_gflops_per_s'] / peak:.0%} of the matrix product's "
-                  "rate", flush=True)
+    for name, network, cfg in settings:
+        r = profile_update(cfg, repeats=args.updates)
+        rows.append({"config": name, "network": network, "matmul_gflops_per_s": peak, **r})
+        print(f"\n{name}, network {network}: batch {r['batch']}, {r['resolution']} px, {r['frames_per_update']} frames "
+              f"per update, {r['train_fps']:.0f} frames/s")
+        print(f"  {'phase':<62} {'ms/update':>10} {'share':>6}")
+        for phase, seconds in r["phases_s"].items():
+            print(f"  {phase:<62} {seconds * 1e3:10.1f} {seconds / r['update_s']:6.0%}")
+        print(f"  {'whole update':<62} {r['update_s'] * 1e3:10.1f} {1:6.0%}")
+        print(f"  {'  sum of rollout, whole loss fwd+bwd and optimiser':<62} {r['sum_of_phases_s'] * 1e3:10.1f} "
+              f"{r['sum_of_phases_s'] / r['update_s']:6.0%}")
+        bound = " at least" if r["flops_lower_bound"] else ""
+        print(f"  {r['update_matmul_flops'] / 1e9:.2f}{bound} GFLOP of matrix products and convolutions per update: "
+              f"{r['update_gflops_per_s']:.1f} GFLOP/s, {r['update_gflops_per_s'] / peak:.0%} of the matrix product's "
+              "rate", flush=True)
     return rows
 
 

@@ -33,6 +33,7 @@ import optax
 
 from a2catvn_jax.agent import update as update_lib
 from a2catvn_jax.agent.networks import VN_HEADS, make_networks
+from a2catvn_jax.bench.throughput import random_steps
 from a2catvn_jax.config import Config
 from a2catvn_jax.env import NavEnv
 
@@ -123,35 +124,37 @@ def profile_update(cfg: Config, repeats: int = 5) -> dict:
     batch = collect(ts)
     phases = {"rollout (environment + policy)": _timed(collect, ts, repeats=repeats)}
 
-    @jax.jit
-    def env_steps(state, key):
-        def body(s, k):
-            return env.step(s, jax.random.randint(k, (env.num_envs,), 0, env.num_actions)), None
-
-        return jax.lax.scan(body, state, jax.random.split(key, cfg.train.rollout_length))[0]
-
+    env_steps = random_steps(env, cfg.train.rollout_length)
     phases["  of which the environment alone"] = _timed(env_steps, batch.env_state, jax.random.PRNGKey(1),
                                                         repeats=repeats)
 
-    def loss_fns(c: Config):
-        loss = lambda params, args: update_lib.loss(c, networks, targets, params, *args)[0]  # noqa: E731
-        return jax.jit(loss), jax.jit(jax.value_and_grad(loss))
+    compiled = {}
+
+    def loss_fns(keep: tuple[str, ...]):
+        """(loss, its value and gradient), jitted, with only the auxiliary terms `keep` on;
+        one pair per set of terms (with one term on, "+ term" and "every term" are one program)."""
+        if keep not in compiled:
+            c = _with_weights(cfg, keep)
+            loss = lambda params, args: update_lib.loss(c, networks, targets, params, *args)[0]  # noqa: E731
+            compiled[keep] = jax.jit(loss), jax.jit(jax.value_and_grad(loss))
+        return compiled[keep]
 
     args = batch.loss_args
     w = cfg.train.loss_weights
     on = tuple(t for t in AUX_TERMS if getattr(w, t) > 0)
-    a2c_fwd, a2c_fb = loss_fns(_with_weights(cfg, ()))
+    a2c_fwd, a2c_fb = loss_fns(())
     phases["loss: A2C (actor, critic, entropy), forward"] = _timed(a2c_fwd, ts.params, args, repeats=repeats)
     a2c = phases["loss: A2C (actor, critic, entropy), forward + backward"] = _timed(a2c_fb, ts.params, args,
                                                                                    repeats=repeats)
     for term in on:
-        _, fb = loss_fns(_with_weights(cfg, (term,)))
+        _, fb = loss_fns((term,))
         phases[f"loss: + {term.replace('_', ' ')}, forward + backward"] = _timed(fb, ts.params, args,
                                                                                  repeats=repeats) - a2c
-    all_fwd, all_fb = loss_fns(cfg)
+    all_fwd, all_fb = loss_fns(on)
+    whole_loss = a2c
     if on:
         phases["loss: every term, forward"] = _timed(all_fwd, ts.params, args, repeats=repeats)
-        phases["loss: every term, forward + backward"] = _timed(all_fb, ts.params, args, repeats=repeats)
+        whole_loss = phases["loss: every term, forward + backward"] = _timed(all_fb, ts.params, args, repeats=repeats)
     _, grads = all_fb(ts.params, args)
     optimizer = update_lib.make_optimizer(cfg)
 
@@ -170,8 +173,7 @@ def profile_update(cfg: Config, repeats: int = 5) -> dict:
         ts, metrics = update(ts)
     jax.block_until_ready(metrics)
     whole = (time.perf_counter() - t0) / repeats
-    parts = (phases["rollout (environment + policy)"] + phases["optimiser (clip + RMSprop)"]
-             + phases["loss: every term, forward + backward" if on else "loss: A2C (actor, critic, entropy), forward + backward"])
+    parts = phases["rollout (environment + policy)"] + phases["optimiser (clip + RMSprop)"] + whole_loss
     flops, lower_bound = matmul_flops(update, ts)
     return {
         "batch": env.num_envs, "resolution": cfg.env.render.image_size, "rollout_length": cfg.train.rollout_length,

@@ -83,8 +83,9 @@ def _timed_updates(cfg, env, updates: int):
     return compile_s, updates * frames_per_update(cfg) / (time.perf_counter() - t0)
 
 
-def _env_rollout_fps(env, steps: int, repeats: int) -> float:
-    """Frames/s of `steps` environment steps with random actions, in one jitted scan."""
+def random_steps(env, steps: int):
+    """A jitted `(env_state, key) -> env_state`: `steps` environment steps with uniformly
+    random actions, in one scan."""
 
     @jax.jit
     def rollout(state, key):
@@ -93,6 +94,12 @@ def _env_rollout_fps(env, steps: int, repeats: int) -> float:
 
         return jax.lax.scan(body, state, jax.random.split(key, steps))[0]
 
+    return rollout
+
+
+def _env_rollout_fps(env, steps: int, repeats: int) -> float:
+    """Frames/s of `steps` environment steps with random actions, in one jitted scan."""
+    rollout = random_steps(env, steps)
     state = rollout(env.reset(jax.random.PRNGKey(0)), jax.random.PRNGKey(1))
     jax.block_until_ready(state)
     t0 = time.perf_counter()
