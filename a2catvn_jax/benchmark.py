@@ -1,7 +1,7 @@
 """Throughput benchmarks.
 
     python -m a2catvn_jax.benchmark env [--batch-sizes 16 64 256 1024] [--resolutions 64 84 174]
-    python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
+    python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5] [--processes 1 2]
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
         [--networks default configs/presets/authors_network.yaml]
     python -m a2catvn_jax.benchmark profile [--configs quickstart image_goals_cpu paper] [--updates 5]
@@ -17,7 +17,10 @@ agent poses, and the ratio of the two.
 for `configs/quickstart.yaml` and `configs/paper.yaml` (Table I: 16 environments,
 20-step rollouts, every auxiliary task, 4 houses of 2x2 rooms) at `--paper-resolution`
 pixels, with compile time and the share of the time spent in the environment (a
-rollout of random actions timed alone).
+rollout of random actions timed alone). With `--processes N ...`: for each N, N copies
+of that benchmark at once, each a process pinned to its share of the CPU cores
+(`run/workers.py`, what `experiments --jobs N` does), and the frames/s
+of all of them together: whether independent runs finish sooner side by side.
 
 `network`: forward+backward frames/s of the conv base with the depth and segmentation
 heads on `--frames` (observation, target) pairs: as the update runs it (the target
@@ -41,7 +44,9 @@ import argparse
 import json
 import platform
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import jax
 
@@ -49,6 +54,7 @@ from a2catvn_jax import cli
 from a2catvn_jax.bench.profile import matmul_gflops, profile_update
 from a2catvn_jax.bench.throughput import bench_env, bench_mujoco_gl, bench_network, bench_train
 from a2catvn_jax.config import CONFIGS, load_config
+from a2catvn_jax.run import workers
 
 CONFIG_NAMES = sorted(p.stem for p in CONFIGS.glob("*.yaml") if p.stem != "default")
 
@@ -70,6 +76,8 @@ def main(argv=None) -> None:
     parser.add_argument("--configs", nargs="+", choices=CONFIG_NAMES, default=["quickstart", "paper"],
                         help="train, profile: configurations of configs/")
     parser.add_argument("--updates", type=int, default=5, help="train, profile: timed updates (calls) per configuration")
+    parser.add_argument("--processes", type=int, nargs="+", default=None, metavar="N",
+                        help="train: for each N, N copies of the benchmark at once, each on its share of the cores")
     parser.add_argument("--paper-resolution", type=int, default=84,
                         help="train, profile: image size of the paper-sized config")
     parser.add_argument("--resolution", type=int, default=84, help="network: image size")
@@ -85,7 +93,9 @@ def main(argv=None) -> None:
     overrides = cli.overrides_of(args)
     _header()
     with cli.errors(parser, code=1):
-        if args.what == "train":
+        if args.what == "train" and args.processes:
+            rows = _train_processes_table(args, overrides)
+        elif args.what == "train":
             rows = []
             print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'env fps':>9} {'env share':>10}")
             for name in args.configs:
@@ -120,6 +130,33 @@ def main(argv=None) -> None:
         if args.json:
             with open(args.json, "w") as f:
                 json.dump(rows, f, indent=1)
+
+
+def _train_processes_table(args, overrides) -> list:
+    """`train` in N processes at once for each N of `--processes`: their frames/s and the sum."""
+    rows = []
+    print(f"{'config':>10} {'processes':>9} {'cores each':>10} {'train fps per process':>34} {'train fps, all':>15}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.configs:
+            for n in args.processes:
+                groups = workers.core_groups(n)
+                out = [Path(tmp) / f"{name}_{n}_{i}.json" for i in range(n)]
+                command = lambda i: [sys.executable, "-m", "a2catvn_jax.benchmark", "train", "--configs", name,  # noqa: E731
+                                     "--updates", str(args.updates), "--paper-resolution", str(args.paper_resolution),
+                                     "--json", str(out[i]), *(["--set", *overrides] if overrides else [])]
+                logs = [Path(tmp) / f"{name}_{n}_{i}.log" for i in range(n)]
+                codes = workers.run_pool([command(i) for i in range(n)], n, logs)
+                if any(codes):
+                    i = next(i for i, c in enumerate(codes) if c)
+                    tail = logs[i].read_text().strip().splitlines()[-1:] or ["(no output)"]
+                    raise workers.WorkerError(f"a benchmark process failed (exit status {codes[i]}): {tail[0]}")
+                fps = [json.loads(p.read_text())[0]["train_fps"] for p in out]
+                cores = "/".join(str(len(g)) for g in groups)
+                rows.append({"config": name, "processes": n, "cores": [len(g) for g in groups], "train_fps": fps,
+                             "train_fps_total": sum(fps)})
+                print(f"{name:>10} {n:>9} {cores:>10} {', '.join(f'{f:.0f}' for f in fps):>34} {sum(fps):15.0f}",
+                      flush=True)
+    return rows
 
 
 def _profile_table(args, overrides) -> list:

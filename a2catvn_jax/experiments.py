@@ -2,7 +2,7 @@
 
     python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1 2 3 4 | --stored-seeds]
         [--episodes 100] [--threshold T] [--root runs/experiments] [--store docs/experiments/runs]
-        [--docs docs] [--skip-missing] [--set KEY=VALUE ...]
+        [--docs docs] [--skip-missing] [--jobs N] [--set KEY=VALUE ...]
     python -m a2catvn_jax.experiments --list [NAME ...] [--scale cpu|paper] [--store DIR]
 
 Experiments (`EXPERIMENTS`):
@@ -33,7 +33,11 @@ date, machine, git commit); checkpoints and TensorBoard files stay in ROOT. Comm
 store: a stored run is never trained again, and the curves and tables are made from
 the store, so on a fresh clone `python -m a2catvn_jax.experiments NAME` re-plots and
 re-tabulates without training, and more `--seeds` train only the missing ones.
-`--stored-seeds` uses the seeds stored for every variant and trains nothing. An
+`--stored-seeds` uses the seeds stored for every variant and trains nothing. `--jobs N`
+trains N runs at once, each in its own process pinned to its share of the CPU cores
+(its log in `train.log` in the run's directory under ROOT): on a CPU with few cores a
+small run leaves cores idle, so runs side by side finish sooner in all
+(docs/benchmarks.md); on one GPU keep 1. An
 evaluation a stored run lacks (another `--episodes`) needs that run's checkpoint in
 ROOT; without it the command stops with an error naming the run, unless
 `--skip-missing` leaves those numbers out. `--list` shows how many seeds of each
@@ -84,6 +88,10 @@ def main(argv=None) -> None:
     parser.add_argument("--train-only", nargs="+", metavar="LABEL", default=None,
                         help="train only these variants (labels as --list shows them); the report waits until "
                              "every run is stored")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="train this many runs at once, each in its own process on its share of the CPU cores "
+                             "(faster in all on a CPU with few cores; on one GPU keep 1)")
+    parser.add_argument("--no-report", action="store_true", help=argparse.SUPPRESS)  # what --jobs' processes run
     cli.add_config_args(parser, config=False,
                         help="configuration changes applied to every variant (they change the runs' names)")
     args = parser.parse_args(argv)
@@ -97,6 +105,8 @@ def main(argv=None) -> None:
         return
     if len(args.name) != 1:
         parser.error("name one experiment (or --list)")
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1, got {args.jobs}")
     exp = EXPERIMENTS[args.name[0]]
     scale = args.scale or "cpu"
     command = "python -m a2catvn_jax.experiments " + " ".join(argv if argv is not None else sys.argv[1:])
@@ -110,7 +120,8 @@ def main(argv=None) -> None:
                                       + "; ".join(f"{label}: {len(s)}" for label, s in stored.items()) + ")")
         ex.run_experiment(exp, scale=scale, seeds=run_seeds, episodes=args.episodes, root=args.root, docs=args.docs,
                        store=store, overrides=cli.overrides_of(args), command=command.strip(),
-                       threshold=args.threshold, skip_missing=args.skip_missing, train_only=args.train_only)
+                       threshold=args.threshold, skip_missing=args.skip_missing, train_only=args.train_only,
+                       jobs=args.jobs, report=not args.no_report)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -273,6 +274,44 @@ def test_an_added_seed_trains_only_that_seed(trained, from_store):
     assert summary["variants"]["a"]["seeds"] == [0, 1, 2] and len(summary["variants"]["a"]["eval"]["train"]["spl"]) == 3
     assert "3 runs per variant" in (root / "docs" / "results.md").read_text()
     assert ex.stored_seeds(one, "cpu", root / "docs" / "experiments" / "runs", TINY) == {"a": [0, 1, 2]}
+
+
+def test_jobs_train_each_run_by_the_runners_own_command(trained, from_store, monkeypatch, capsys):
+    """`--jobs N`: each run to train is one process running the runner's own command for
+    that (seed, variant) with --no-report, N at a time; the parent reports from the
+    store. The pool is replaced here by one that runs each command in this process."""
+    root = trained[0]
+    one = tiny((ex.Variant("a"),), name="tiny_jobs")
+    monkeypatch.setitem(ex.EXPERIMENTS, one.name, one)
+    where = ["--docs", str(root / "docs"), "--root", str(root / "runs"), "--set", *TINY]
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["tiny_jobs", "--seeds", "7", "--jobs", "999", *where])
+    assert exit_info.value.code == 2
+    assert "999 processes need at least 999 CPU cores" in capsys.readouterr().err
+
+    pools = []
+
+    def pool(commands, jobs, logs, on_start, on_end):
+        pools.append((commands, jobs, logs))
+        for i, command in enumerate(commands):
+            assert command[:3] == [sys.executable, "-m", "a2catvn_jax.experiments"] and "--no-report" in command
+            on_start(i, [0])
+            cli.main(command[3:])
+            on_end(i, 0)
+        return [0] * len(commands)
+
+    monkeypatch.setattr(ex, "run_pool", pool)
+    summary, lines = run_tiny(root, one, seeds=(0, 1, 5), jobs=2)
+    (commands, jobs, logs), = pools
+    assert jobs == 2 and len(commands) == 1 and logs[0].name == "train.log" and logs[0].parent.name == "seed_5"
+    assert "started a, seed 5 on core(s) 0; log: " + str(logs[0]) in lines
+    assert any(line.startswith("stored: a, seed 5 (") for line in lines)
+    assert summary["variants"]["a"]["seeds"] == [0, 1, 5]
+    assert "training a, seed 5" in capsys.readouterr().out  # the process's own output
+    # a process that fails is named with its log, and nothing is reported
+    monkeypatch.setattr(ex, "run_pool", lambda commands, jobs, logs, on_start, on_end: [1] * len(commands))
+    with pytest.raises(ex.ExperimentError, match=r"1 of 1 run\(s\) failed: a, seed 6 \(log: .*seed_6/train.log\)"):
+        run_tiny(root, one, seeds=(0, 6), jobs=2)
 
 
 def test_a_run_stored_before_new_configuration_keys_is_found(trained, from_store, tmp_path):

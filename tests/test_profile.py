@@ -1,14 +1,21 @@
 """`benchmark profile`: every phase of the update is timed and the parts add up to about
-the whole (A2C with one auxiliary term, on the tiny learner, to keep compiles few)."""
+the whole (A2C with one auxiliary term, on the tiny learner, to keep compiles few).
+`benchmark train --processes`: the command each process runs and the table of their
+frames/s."""
 
 from __future__ import annotations
 
+import json
+import sys
+
 import jax
 import jax.numpy as jnp
+import pytest
 
 from a2catvn_jax import benchmark
 from a2catvn_jax.bench.profile import AUX_TERMS, matmul_flops, profile_update
 from a2catvn_jax.config import load_config
+from a2catvn_jax.run import workers
 from tiny import TINY_LEARNER
 
 ONLY_DEPTH = [f"train.loss_weights.{t}=0" for t in AUX_TERMS if t != "depth"]
@@ -47,3 +54,43 @@ def test_flop_count_multiplies_loops_and_matches_xla_without_them():
 
 def test_profile_command_names_every_configuration():
     assert {"quickstart", "image_goals_cpu", "house_rooms_cpu", "paper"} <= set(benchmark.CONFIG_NAMES)
+
+
+def test_train_benchmark_in_several_processes(monkeypatch, capsys, tmp_path):
+    """Each process runs `benchmark train` on one configuration with --json; the table
+    sums their frames/s. The pool is replaced by one that runs each command in this
+    process (on the tiny learner); `run_pool` itself is tested in test_workers.py."""
+    pools = []
+
+    def pool(commands, jobs, logs):
+        pools.append((len(commands), jobs))
+        for command in commands:
+            assert command[:4] == [sys.executable, "-m", "a2catvn_jax.benchmark", "train"]
+            benchmark.main(command[3:])
+        return [0] * len(commands)
+
+    monkeypatch.setattr(workers, "run_pool", pool)
+    tiny = TINY_LEARNER + ["env.scene.num_scenes=1"] + ONLY_DEPTH
+    out = tmp_path / "rows.json"
+    benchmark.main(["train", "--configs", "quickstart", "--updates", "1", "--processes", "2", "--json", str(out),
+                    "--set", *tiny])
+    assert pools == [(2, 2)]
+    (two,) = json.loads(out.read_text())
+    assert two["processes"] == 2 and sum(two["cores"]) == len(workers.available_cores()) and len(two["train_fps"]) == 2
+    assert two["train_fps_total"] == sum(two["train_fps"]) > 0
+    printed = capsys.readouterr().out
+    assert f"{two['train_fps_total']:15.0f}" in printed and "train fps, all" in printed
+
+
+def test_train_benchmark_process_failure_is_one_line(monkeypatch, capsys, tmp_path):
+    def pool(commands, jobs, logs):
+        for log in logs:
+            log.write_text("Traceback ...\nRuntimeError: out of memory\n")
+        return [1] * len(commands)
+
+    monkeypatch.setattr(workers, "run_pool", pool)
+    with pytest.raises(SystemExit) as exit_info:
+        benchmark.main(["train", "--configs", "quickstart", "--processes", "1"])
+    assert exit_info.value.code == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: a benchmark process failed (exit status 1): RuntimeError: out of memory"]

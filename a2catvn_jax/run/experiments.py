@@ -44,6 +44,7 @@ import platform
 import re
 import shutil
 import subprocess
+import sys
 import time
 import warnings
 from collections import Counter
@@ -65,6 +66,7 @@ from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.plots import smooth
 from a2catvn_jax.run.pretraining import PRETRAINED_DIR, pretrain
 from a2catvn_jax.run.training import train
+from a2catvn_jax.run.workers import run_pool
 
 SCALES = ("cpu", "paper")
 DEFAULT_SEEDS = (0, 1, 2, 3, 4)
@@ -875,10 +877,41 @@ def _compilation_cache(directory: Path) -> None:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+def _train_in_processes(exp: Experiment, scale: str, runs: list[Run], jobs: int, *, episodes: int, root, docs,
+                        store, overrides: Sequence[str], log: Callable[[str], None]) -> None:
+    """Train, evaluate and store `runs`, `jobs` at a time, each in its own process on its
+    share of the cores (`workers.run_pool`); raises `ExperimentError` naming the runs
+    that failed and their logs."""
+    def command(run: Run) -> list[str]:
+        return [sys.executable, "-m", "a2catvn_jax.experiments", exp.name, "--scale", scale,
+                "--seeds", str(run.seed), "--train-only", run.variant.label, "--episodes", str(episodes),
+                "--root", str(root), "--store", str(store), "--docs", str(docs), "--no-report",
+                *(["--set", *overrides] if overrides else [])]
+
+    logs = [run.workdir / "train.log" for run in runs]
+    t0 = time.perf_counter()
+
+    def started(i, cores):
+        log(f"started {runs[i].name} on core(s) {','.join(map(str, cores))}; log: {logs[i]}")
+
+    def ended(i, code):
+        minutes = (time.perf_counter() - t0) / 60
+        state = "stored" if code == 0 and runs[i].is_stored() else f"FAILED (exit status {code})"
+        log(f"{state}: {runs[i].name} ({minutes:.1f} min after the start)")
+
+    log(f"training {len(runs)} run(s), {jobs} at a time, each in its own process")
+    codes = run_pool([command(run) for run in runs], jobs, logs, on_start=started, on_end=ended)
+    failed = [f"{run.name} (log: {path})" for run, path, code in zip(runs, logs, codes)
+              if code != 0 or not run.is_stored()]
+    if failed:
+        raise ExperimentError(f"{len(failed)} of {len(runs)} run(s) failed: " + "; ".join(failed))
+
+
 def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] = DEFAULT_SEEDS, episodes: int = 100,
                    root=DEFAULT_ROOT, docs="docs", store=None, overrides: Sequence[str] = (), command: str = "",
                    threshold: Optional[float] = None, skip_missing: bool = False, compilation_cache: bool = True,
-                   train_only: Optional[Sequence[str]] = None, log: Optional[Callable[[str], None]] = None) -> dict:
+                   train_only: Optional[Sequence[str]] = None, jobs: int = 1, report: bool = True,
+                   log: Optional[Callable[[str], None]] = None) -> dict:
     """Train, evaluate, store and report `exp`; returns its summary (also written as JSON).
 
     Runs stored in `store` (default DOCS/experiments/runs) are not trained again, and
@@ -891,6 +924,13 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
     others are neither stored nor trained, nothing is reported and the summary is
     {"experiment": name, "pending": [run names]}: a long experiment can be trained a
     variant at a time, across sittings and machines, through the store.
+
+    `jobs` > 1 trains that many runs at once, each in a process of its own pinned to its
+    share of the CPU cores (`workers.run_pool`; on a CPU with few cores the runs finish
+    sooner in all, docs/benchmarks.md; on one GPU keep 1); each process trains,
+    evaluates and stores one run and writes its output to `train.log` in the run's
+    directory under ROOT. `report=False` stops after the training (what those processes
+    do).
     """
     log = log or functools.partial(print, flush=True)
     if not seeds:
@@ -915,16 +955,22 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
         _compilation_cache(Path(root) / ".jax_cache")
     stored = sum(r.is_stored() for r in runs)
     log(f"{exp.name}: {len(runs)} runs, {stored} stored in {store}, {len(runs) - stored} to train or finish")
-    for i, run in enumerate(runs):
-        if run.is_stored() or (train_only is not None and run.variant.label not in train_only):
-            continue
-        log(f"[{i + 1}/{len(runs)}] {run.name}")
+    to_train = [run for run in runs
+                if not run.is_stored() and (train_only is None or run.variant.label in train_only)]
+    if jobs > 1 and to_train:
+        _train_in_processes(exp, scale, to_train, jobs, episodes=episodes, root=root, docs=docs, store=store,
+                            overrides=overrides, log=log)
+        to_train = []
+    for run in to_train:
+        log(f"[{runs.index(run) + 1}/{len(runs)}] {run.name}")
         seconds = train_run(run, log)
         if seconds:
             log(f"  trained in {seconds / 60:.1f} min")
         results = evaluate_run(run, exp.evaluations, episodes, log=log)
         store_run(run, results, episodes)
         log(f"  stored in {run.stored}")
+    if not report:
+        return {"experiment": exp.name, "trained": [run.name for run in runs if run.is_stored()]}
     pending = [run.name for run in runs if not run.is_stored()]
     if pending:
         log(f"not reported: {len(pending)} run(s) neither stored nor trained now: {', '.join(pending)}")

@@ -1,0 +1,72 @@
+"""Processes pinned to shares of the CPU cores (`run/workers.py`): how the cores are
+split, the XLA flags each process gets, and a pool of real processes that never runs
+more commands at once than it has groups, pins each to a free group and reports every
+exit status and output."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import pytest
+
+from a2catvn_jax.run import workers
+
+
+def test_core_groups_split_evenly_and_refuse_too_many():
+    assert workers.core_groups(2, [0, 1, 2, 3, 4]) == [[0, 1, 2], [3, 4]]
+    assert workers.core_groups(1, [3, 5]) == [[3, 5]]
+    assert workers.core_groups(3, [0, 1, 2]) == [[0], [1], [2]]
+    with pytest.raises(workers.WorkerError, match="3 processes need at least 3 CPU cores; this process may use 2"):
+        workers.core_groups(3, [0, 1])
+    with pytest.raises(workers.WorkerError, match=">= 1"):
+        workers.core_groups(0, [0, 1])
+    assert sum(map(len, workers.core_groups(1))) == len(workers.available_cores())
+
+
+def test_worker_env_turns_eigen_threads_off_for_one_core_and_keeps_other_flags():
+    base = {"XLA_FLAGS": "--xla_dump_to=/tmp/x --xla_cpu_multi_thread_eigen=true", "HOME": "/h"}
+    one = workers.worker_env([1], base)
+    assert one["HOME"] == "/h"
+    assert one["XLA_FLAGS"].split() == ["--xla_dump_to=/tmp/x", "--xla_cpu_multi_thread_eigen=false"]
+    assert workers.worker_env([0, 1], base)["XLA_FLAGS"] == "--xla_dump_to=/tmp/x"
+    assert "XLA_FLAGS" not in workers.worker_env([0, 1], {"HOME": "/h"})
+    assert base["XLA_FLAGS"].endswith("=true")  # not changed in place
+
+
+PROBE = """
+import json, os, sys, time
+start = time.time()
+time.sleep(0.4)
+print(json.dumps({"cores": sorted(os.sched_getaffinity(0)), "flags": os.environ.get("XLA_FLAGS", ""), "start": start,
+                  "end": time.time()}))
+sys.exit(int(sys.argv[1]))
+"""
+
+
+def test_pool_pins_each_process_and_runs_at_most_jobs_at_once(tmp_path):
+    jobs = min(2, len(workers.available_cores()))
+    groups = workers.core_groups(jobs)
+    codes_in = [0, 3, 0, 0, 5]
+    logs = [tmp_path / "logs" / f"{i}.log" for i in range(len(codes_in))]
+    started, ended = [], []
+    codes = workers.run_pool([[sys.executable, "-c", PROBE, str(c)] for c in codes_in], jobs, logs,
+                             on_start=lambda i, cores: started.append((i, cores)),
+                             on_end=lambda i, code: ended.append((i, code)), poll_s=0.05)
+    assert codes == codes_in
+    assert sorted(i for i, _ in started) == sorted(i for i, _ in ended) == list(range(len(codes_in)))
+    assert [i for i, _ in started] == list(range(len(codes_in)))  # in the order given
+    runs = [json.loads(path.read_text()) for path in logs]
+    for (i, cores), run in zip(started, runs):
+        assert run["cores"] == cores and cores in groups
+        assert ("--xla_cpu_multi_thread_eigen=false" in run["flags"]) == (len(cores) == 1)
+    # never more than `jobs` processes alive at once, and no two on the same cores at once
+    for t in sorted(r["start"] for r in runs):
+        alive = [r for r in runs if r["start"] <= t < r["end"]]
+        assert len(alive) <= jobs
+        assert len({tuple(r["cores"]) for r in alive}) == len(alive)
+
+
+def test_pool_checks_its_arguments(tmp_path):
+    with pytest.raises(workers.WorkerError, match="2 commands but 1 log paths"):
+        workers.run_pool([["true"], ["true"]], 1, [tmp_path / "a.log"])
