@@ -9,6 +9,7 @@ Experiments (`EXPERIMENTS`):
   sight           A2CAT-VN vs the same agent blind on the quickstart task (configs/quickstart.yaml)
   aux             A2CAT-VN (pre-trained and not) vs A2C+UNREAL vs plain A2C, and a blind A2CAT-VN
   ablations       A2CAT-VN without one auxiliary loss at a time
+  ablations_quickstart  the same on the quickstart task (configs/quickstart.yaml)
   memory          LSTM vs frame stack (mazes, UNREAL auxiliary tasks)
   pretraining     with vs without supervised pre-training
   curriculum      with vs without the complexity curriculum

@@ -59,6 +59,12 @@ def test_learning_by_sight_experiments():
     assert runs["A2CAT-VN (pre-trained)"].variant.pretrain and runs["A2CAT-VN (pre-trained)"].cfg.pretrain.epochs == 10
     assert runs["A2C"].cfg.train.loss_weights.reward_prediction == 0 and runs["A2C+UNREAL"].cfg.train.loss_weights.depth == 0
     assert runs["A2C+UNREAL"].cfg.train.loss_weights.pixel_control > 0
+    abl_qs = ex.plan(ex.EXPERIMENTS["ablations_quickstart"], "cpu", [0], "/r")
+    assert abl_qs[0].workdir == seeing.workdir and len(abl_qs) == 1 + len(weights)  # the full A2CAT-VN is sight's
+    for run, loss in zip(abl_qs[1:], weights, strict=True):
+        w = run.cfg.train.loss_weights
+        assert getattr(w, loss) == 0 and all(getattr(w, other) > 0 for other in weights if other != loss)
+        assert run.cfg.env == seeing.cfg.env
     # the stored seeds and the listing look for its runs under the same single configuration
     assert ex.stored_seeds(sight, "cpu", "/nonexistent") == {"A2CAT-VN": [], "blind A2CAT-VN": []}
     assert "(configs/quickstart.yaml;" in ex.listing("/nonexistent", names=["sight"])

@@ -157,6 +157,14 @@ EXPERIMENTS = {e.name: e for e in (
               "and reports no leave-one-out ablation.",
     ),
     Experiment(
+        "ablations_quickstart", "A2CAT-VN without one auxiliary loss at a time, on the quickstart task", "quickstart",
+        (Variant("A2CAT-VN"),) + tuple(
+            Variant(f"without {loss.replace('_', ' ')}", (f"train.loss_weights.{loss}=0",)) for loss in AUX_LOSSES),
+        cpu_threshold=0.7, evaluations=("train",), cpu_only=True,
+        paper="The paper compares A2CAT-VN with A2C+UNREAL (all three visual-navigation losses removed together) "
+              "and reports no leave-one-out ablation. The A2CAT-VN runs are the sight experiment's.",
+    ),
+    Experiment(
         "memory", "LSTM vs frame stack", "maze",
         (Variant("LSTM"), Variant("frame stack", ("agent.memory=frame_stack",))),
         cpu_threshold=0.7,
