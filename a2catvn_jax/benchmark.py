@@ -5,7 +5,7 @@
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
         [--networks default configs/presets/authors_network.yaml]
     python -m a2catvn_jax.benchmark profile [--configs quickstart image_goals_cpu paper] [--updates 5]
-        [--networks default configs/presets/authors_network.yaml]
+        [--networks default configs/presets/authors_network.yaml] [--ops 15]
 
 `env`: frames/s of `NavEnv.step` (one frame = one agent step with its RGB, depth and
 segmentation rendered) in a multi-room house, for each batch size and resolution,
@@ -34,7 +34,8 @@ the environment alone; the loss forward and forward + backward for plain A2C and
 each auxiliary term on top of it; the optimiser; the whole update), for each
 configuration of `configs/` named by `--configs` (`paper` at `--paper-resolution`)
 with each network of `--networks`, and the share of a dense matrix product's
-floating-point rate (timed in the same run) that the update reaches
+floating-point rate (timed in the same run) that the update reaches; with `--ops N`, the N XLA operations of
+the update that take the most time, with the program source each comes from
 (`bench/profile.py`).
 """
 
@@ -76,6 +77,8 @@ def main(argv=None) -> None:
     parser.add_argument("--configs", nargs="+", choices=CONFIG_NAMES, default=["quickstart", "paper"],
                         help="train, profile: configurations of configs/")
     parser.add_argument("--updates", type=int, default=5, help="train, profile: timed updates (calls) per configuration")
+    parser.add_argument("--ops", type=int, default=0, metavar="N",
+                        help="profile: also list the N XLA operations of the update that take the most time")
     parser.add_argument("--processes", type=int, nargs="+", default=None, metavar="N",
                         help="train: for each N, N copies of the benchmark at once, each on its share of the cores")
     parser.add_argument("--paper-resolution", type=int, default=84,
@@ -170,7 +173,7 @@ def _profile_table(args, overrides) -> list:
     print(f"dense float32 matrix product (1024x1024): {peak:.1f} GFLOP/s")
     rows = []
     for name, network, cfg in settings:
-        r = profile_update(cfg, repeats=args.updates)
+        r = profile_update(cfg, repeats=args.updates, ops=args.ops)
         rows.append({"config": name, "network": network, "matmul_gflops_per_s": peak, **r})
         print(f"\n{name}, network {network}: batch {r['batch']}, {r['resolution']} px, {r['frames_per_update']} frames "
               f"per update, {r['train_fps']:.0f} frames/s")
@@ -184,6 +187,14 @@ def _profile_table(args, overrides) -> list:
         print(f"  {r['update_matmul_flops'] / 1e9:.2f}{bound} GFLOP of matrix products and convolutions per update: "
               f"{r['update_gflops_per_s']:.1f} GFLOP/s, {r['update_gflops_per_s'] / peak:.0%} of the matrix product's "
               "rate", flush=True)
+        if "op_times" in r:
+            t = r["op_times"]
+            print(f"  the {len(t['ops'])} XLA operations that take the most time (of {t['ops_ms_per_update']:.1f} ms per "
+                  "update in all operations, under the profiler):")
+            print(f"  {'ms/update':>10} {'calls':>6}  {'output':<22} source")
+            for op in t["ops"]:
+                print(f"  {op['ms_per_update']:10.1f} {op['calls_per_update']:6g}  {op['shape']:<22} "
+                      f"{op['source'] or op['op']}")
     return rows
 
 

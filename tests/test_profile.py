@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import pytest
 
 from a2catvn_jax import benchmark
+from a2catvn_jax.bench import profile as benchmark_profile
 from a2catvn_jax.bench.profile import AUX_TERMS, matmul_flops, profile_update
 from a2catvn_jax.config import load_config
 from a2catvn_jax.run import workers
@@ -23,7 +24,7 @@ ONLY_DEPTH = [f"train.loss_weights.{t}=0" for t in AUX_TERMS if t != "depth"]
 
 def test_profile_times_every_phase_of_the_update():
     cfg = load_config(None, TINY_LEARNER + ["env.scene.kind=room", "env.scene.num_scenes=1"] + ONLY_DEPTH)
-    r = profile_update(cfg, repeats=2)
+    r = profile_update(cfg, repeats=2, ops=4)
     assert list(r["phases_s"]) == [
         "rollout (environment + policy)", "  of which the environment alone",
         "loss: A2C (actor, critic, entropy), forward", "loss: A2C (actor, critic, entropy), forward + backward",
@@ -36,6 +37,39 @@ def test_profile_times_every_phase_of_the_update():
     assert r["sum_of_phases_s"] == (phases["rollout (environment + policy)"] + phases["optimiser (clip + RMSprop)"]
                                     + phases["loss: every term, forward + backward"])
     assert r["update_matmul_flops"] > 0 and r["update_gflops_per_s"] > 0 and not r["flops_lower_bound"]
+    ops = r["op_times"]["ops"]
+    assert len(ops) == 4 and all(op["ms_per_update"] > 0 and op["calls_per_update"] > 0 for op in ops)
+    assert [op["ms_per_update"] for op in ops] == sorted((op["ms_per_update"] for op in ops), reverse=True)
+    assert r["op_times"]["ops_ms_per_update"] >= sum(op["ms_per_update"] for op in ops)
+    assert all(op["source"] and op["shape"] for op in ops)
+
+
+def test_hlo_ops_names_each_instruction_by_its_source():
+    text = """HloModule m
+
+%fused_computation.1 (p0: f32[2,3], p1: f32[3,4]) -> f32[2,4] {
+  %p0 = f32[2,3]{1,0} parameter(0)
+  %p1 = f32[3,4]{1,0} parameter(1)
+  ROOT %dot.1 = f32[2,4]{1,0} dot(%p0, %p1), lhs_contracting_dims={1}, rhs_contracting_dims={0}
+}
+
+%fused_computation.2 (p0: f32[2,3]) -> f32[2,3] {
+  %p0 = f32[2,3]{1,0} parameter(0)
+  ROOT %neg.2 = f32[2,3]{1,0} negate(%p0), metadata={op_name="jit(update)/jvp(Net.encode)/neg"}
+}
+
+ENTRY %main (a: f32[2,3], b: f32[3,4]) -> f32[2,4] {
+  %a = f32[2,3]{1,0} parameter(0)
+  %b = f32[3,4]{1,0} parameter(1)
+  %fusion.2 = f32[2,3]{1,0} fusion(%a), kind=kLoop, calls=%fused_computation.2
+  %add.3 = f32[2,3]{1,0} add(%fusion.2, %fusion.2), metadata={op_name="jit(update)/transpose(jvp(Net.core))/add"}
+  ROOT %fusion.1 = f32[2,4]{1,0} fusion(%add.3, %b), kind=kCustom, calls=%fused_computation.1
+}
+"""
+    ops = benchmark_profile.hlo_ops(text)
+    assert ops["add.3"] == ("transpose(jvp(Net.core))/add", "f32[2,3]")
+    assert ops["fusion.2"] == ("jvp(Net.encode)/neg", "f32[2,3]")  # from inside the fused computation
+    assert ops["fusion.1"] == ("dot (no source recorded)", "f32[2,4]")
 
 
 def test_flop_count_multiplies_loops_and_matches_xla_without_them():

@@ -19,13 +19,25 @@ It also counts the floating-point operations of one update's matrix products and
 convolutions (`matmul_flops`: from the traced program, loops counted as many times as
 they run; XLA's own count takes each loop body once) and reports the rate they reach
 against a dense float32 matrix product timed in the same run.
+
+`op_times` lists the XLA operations of the compiled update that take the most time,
+from a profiler trace of a few updates: each operation's milliseconds per update (all
+its executions, those inside loops included), the program source XLA records for it
+(e.g. `transpose(jvp(A2CATNet.vn_heads))/vn/conv_general_dilated`: the backward pass
+of the vision heads' convolution) and its output shape.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import gzip
+import json
 import math
+import re
+import tempfile
 import time
+from collections import Counter
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -109,8 +121,9 @@ def matmul_gflops(size: int = 1024, repeats: int = 20) -> float:
     return 2 * size**3 / seconds / 1e9
 
 
-def profile_update(cfg: Config, repeats: int = 5) -> dict:
-    """Seconds per update of each phase (see the module docstring) of configuration `cfg`."""
+def profile_update(cfg: Config, repeats: int = 5, ops: int = 0) -> dict:
+    """Seconds per update of each phase (see the module docstring) of configuration `cfg`,
+    and with `ops` > 0 the `ops` most expensive XLA operations of the update (`op_times`)."""
     env = NavEnv(cfg.env)
     networks = make_networks(cfg, env.num_actions)
     fns = update_lib.make_update(env, networks, cfg)
@@ -175,9 +188,82 @@ def profile_update(cfg: Config, repeats: int = 5) -> dict:
     whole = (time.perf_counter() - t0) / repeats
     parts = phases["rollout (environment + policy)"] + phases["optimiser (clip + RMSprop)"] + whole_loss
     flops, lower_bound = matmul_flops(update, ts)
+    top_ops = op_times(update, ts, repeats, ops) if ops > 0 else None
     return {
         "batch": env.num_envs, "resolution": cfg.env.render.image_size, "rollout_length": cfg.train.rollout_length,
         "frames_per_update": frames, "phases_s": phases, "update_s": whole, "sum_of_phases_s": parts,
         "train_fps": frames / whole, "update_matmul_flops": flops, "flops_lower_bound": lower_bound,
-        "update_gflops_per_s": flops / whole / 1e9,
+        "update_gflops_per_s": flops / whole / 1e9, **({"op_times": top_ops} if top_ops else {}),
     }
+
+
+_INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+) = (\S+)")
+_COMPUTATION = re.compile(r"^(?:ENTRY\s+)?%?([\w.\-]+) .*\{\s*$")
+_OP_NAME = re.compile(r'op_name="([^"]*)"')
+_CALLS = re.compile(r"calls=%?([\w.\-]+)")
+_OPCODE = re.compile(r"\s([a-z][\w\-]*)\(")
+_CONTROL = ("while", "conditional", "call")  # their time is the time of the operations inside them
+
+
+def hlo_ops(hlo_text: str) -> dict:
+    """Instruction name -> (source, output shape) of a compiled HLO module's text. The
+    source is the `op_name` XLA recorded (without the `jit(...)/` prefix); a fusion
+    without one takes the first `op_name` inside the computation it calls, or else
+    "OPCODE (no source recorded)" with the opcode of that computation's root."""
+    ops, first_source, root_op, calls, computation = {}, {}, {}, {}, None
+    for line in hlo_text.splitlines():
+        head = _COMPUTATION.match(line)
+        if head and "=" not in line.split("{")[0]:
+            computation = head.group(1)
+            continue
+        m = _INSTRUCTION.match(line)
+        if not m:
+            continue
+        name, shape = m.group(1), m.group(2).split("{")[0].rstrip(",")
+        source = _OP_NAME.search(line)
+        source = re.sub(r"^jit\([^)]*\)/", "", source.group(1)) if source else ""
+        if computation is not None:
+            if source:
+                first_source.setdefault(computation, source)
+            opcode = _OPCODE.search(line[m.end():])
+            if line.lstrip().startswith("ROOT") and opcode:
+                root_op[computation] = opcode.group(1)
+        called = _CALLS.search(line)
+        if called:
+            calls[name] = called.group(1)
+        ops[name] = (source, shape)
+
+    def source_of(name, source):
+        if source or name not in calls:
+            return source
+        called = calls[name]
+        return first_source.get(called) or (f"{root_op[called]} (no source recorded)" if called in root_op else "")
+
+    return {name: (source_of(name, source), shape) for name, (source, shape) in ops.items()}
+
+
+def op_times(update, ts, repeats: int = 5, top: int = 15) -> dict:
+    """The `top` XLA operations of the jitted `update(ts) -> (ts, metrics)` (its argument
+    donated) that take the most time over `repeats` calls under `jax.profiler.trace`:
+    {"ops": [{op, ms_per_update, calls_per_update, source, shape}], "ops_ms_per_update":
+    the time of every operation of the update (loops counted by what runs inside them)}."""
+    info = hlo_ops(update.lower(ts).compile().as_text())
+    ts, metrics = update(ts)
+    jax.block_until_ready(metrics)
+    with tempfile.TemporaryDirectory() as tmp:
+        with jax.profiler.trace(tmp, create_perfetto_trace=True):
+            for _ in range(repeats):
+                ts, metrics = update(ts)
+            jax.block_until_ready(metrics)
+        with gzip.open(next(Path(tmp).rglob("*.trace.json.gz"))) as f:
+            events = json.load(f)
+    events = events["traceEvents"] if isinstance(events, dict) else events
+    micros, calls = Counter(), Counter()
+    for e in events:
+        name = e.get("name")
+        if e.get("ph") == "X" and name in info and not name.startswith(_CONTROL):
+            micros[name] += e.get("dur", 0)
+            calls[name] += 1
+    rows = [{"op": name, "ms_per_update": us / repeats / 1e3, "calls_per_update": calls[name] / repeats,
+             "source": info[name][0], "shape": info[name][1]} for name, us in micros.most_common(top)]
+    return {"ops": rows, "ops_ms_per_update": sum(micros.values()) / repeats / 1e3}
