@@ -92,15 +92,20 @@ def test_profile_command_names_every_configuration():
 
 def test_train_benchmark_in_several_processes(monkeypatch, capsys, tmp_path):
     """Each process runs `benchmark train` on one configuration with --json; the table
-    sums their frames/s. The pool is replaced by one that runs each command in this
-    process (on the tiny learner); `run_pool` itself is tested in test_workers.py."""
+    sums their frames/s. The pool is replaced by one that runs the first command in this
+    process (on the tiny learner) and gives the others its result with another
+    frames/s; `run_pool` itself is tested in test_workers.py."""
     pools = []
 
     def pool(commands, jobs, logs):
         pools.append((len(commands), jobs))
         for command in commands:
             assert command[:4] == [sys.executable, "-m", "a2catvn_jax.benchmark", "train"]
-            benchmark.main(command[3:])
+        benchmark.main(commands[0][3:])
+        first = commands[0][commands[0].index("--json") + 1]
+        for i, command in enumerate(commands[1:], 1):
+            (row,) = json.loads(open(first).read())
+            open(command[command.index("--json") + 1], "w").write(json.dumps([{**row, "train_fps": 100.0 * i}]))
         return [0] * len(commands)
 
     monkeypatch.setattr(workers, "run_pool", pool)
@@ -111,7 +116,8 @@ def test_train_benchmark_in_several_processes(monkeypatch, capsys, tmp_path):
     assert pools == [(2, 2)]
     (two,) = json.loads(out.read_text())
     assert two["processes"] == 2 and sum(two["cores"]) == len(workers.available_cores()) and len(two["train_fps"]) == 2
-    assert two["train_fps_total"] == sum(two["train_fps"]) > 0
+    assert two["train_fps"][0] > 0 and two["train_fps"][1] == 100.0
+    assert two["train_fps_total"] == sum(two["train_fps"])
     printed = capsys.readouterr().out
     assert f"{two['train_fps_total']:15.0f}" in printed and "train fps, all" in printed
 
