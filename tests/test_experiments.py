@@ -287,7 +287,7 @@ def test_jobs_train_each_run_by_the_runners_own_command(trained, from_store, mon
     that (seed, variant) with --no-report, N at a time; the parent reports from the
     store. The pool is replaced here by one that runs each command in this process."""
     root = trained[0]
-    one = tiny((ex.Variant("a"),), name="tiny_jobs")
+    one = tiny((ex.Variant("a"), ex.Variant("a again")), name="tiny_jobs")  # one run per seed, two variants
     monkeypatch.setitem(ex.EXPERIMENTS, one.name, one)
     where = ["--docs", str(root / "docs"), "--root", str(root / "runs"), "--set", *TINY]
     with pytest.raises(SystemExit) as exit_info:
@@ -312,7 +312,7 @@ def test_jobs_train_each_run_by_the_runners_own_command(trained, from_store, mon
     assert jobs == 2 and len(commands) == 1 and logs[0].name == "train.log" and logs[0].parent.name == "seed_5"
     assert "started a, seed 5 on core(s) 0; log: " + str(logs[0]) in lines
     assert any(line.startswith("stored: a, seed 5 (") for line in lines)
-    assert summary["variants"]["a"]["seeds"] == [0, 1, 5]
+    assert summary["variants"]["a"]["seeds"] == summary["variants"]["a again"]["seeds"] == [0, 1, 5]
     assert "training a, seed 5" in capsys.readouterr().out  # the process's own output
     # a process that fails is named with its log, and nothing is reported
     monkeypatch.setattr(ex, "run_pool", lambda commands, jobs, logs, on_start, on_end: [1] * len(commands))

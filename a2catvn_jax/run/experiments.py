@@ -963,14 +963,17 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
         _compilation_cache(Path(root) / ".jax_cache")
     stored = sum(r.is_stored() for r in runs)
     log(f"{exp.name}: {len(runs)} runs, {stored} stored in {store}, {len(runs) - stored} to train or finish")
-    to_train = [run for run in runs
-                if not run.is_stored() and (train_only is None or run.variant.label in train_only)]
+    to_train = {}  # work directory -> run: variants with the same configuration share one run
+    for run in runs:
+        if not run.is_stored() and (train_only is None or run.variant.label in train_only):
+            to_train.setdefault(run.workdir, run)
     if jobs > 1 and to_train:
-        _train_in_processes(exp, scale, to_train, jobs, episodes=episodes, root=root, docs=docs, store=store,
-                            overrides=overrides, log=log)
-        to_train = []
-    for run in to_train:
-        log(f"[{runs.index(run) + 1}/{len(runs)}] {run.name}")
+        _train_in_processes(exp, scale, list(to_train.values()), jobs, episodes=episodes, root=root, docs=docs,
+                            store=store, overrides=overrides, log=log)
+    for i, run in enumerate(runs):
+        if run.is_stored() or run.workdir not in to_train:
+            continue
+        log(f"[{i + 1}/{len(runs)}] {run.name}")
         seconds = train_run(run, log)
         if seconds:
             log(f"  trained in {seconds / 60:.1f} min")
