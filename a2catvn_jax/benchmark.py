@@ -34,9 +34,9 @@ the environment alone; the loss forward and forward + backward for plain A2C and
 each auxiliary term on top of it; the optimiser; the whole update), for each
 configuration of `configs/` named by `--configs` (`paper` at `--paper-resolution`)
 with each network of `--networks`, and the share of a dense matrix product's
-floating-point rate (timed in the same run) that the update reaches; with `--ops N`, the N XLA operations of
-the update that take the most time, with the program source each comes from
-(`bench/profile.py`).
+floating-point rate (timed in the same run) that the update reaches; with `--ops N`,
+the N XLA operations of the update that take the most time, with the program source
+each comes from (`bench/profile.py`).
 """
 
 from __future__ import annotations
