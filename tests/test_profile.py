@@ -63,13 +63,15 @@ ENTRY %main (a: f32[2,3], b: f32[3,4]) -> f32[2,4] {
   %b = f32[3,4]{1,0} parameter(1)
   %fusion.2 = f32[2,3]{1,0} fusion(%a), kind=kLoop, calls=%fused_computation.2
   %add.3 = f32[2,3]{1,0} add(%fusion.2, %fusion.2), metadata={op_name="jit(update)/transpose(jvp(Net.core))/add"}
-  ROOT %fusion.1 = f32[2,4]{1,0} fusion(%add.3, %b), kind=kCustom, calls=%fused_computation.1
+  %copy.4 = f32[3,4]{0,1} copy(%b)
+  ROOT %fusion.1 = f32[2,4]{1,0} fusion(%add.3, %copy.4), kind=kCustom, calls=%fused_computation.1
 }
 """
     ops = benchmark_profile.hlo_ops(text)
     assert ops["add.3"] == ("transpose(jvp(Net.core))/add", "f32[2,3]")
     assert ops["fusion.2"] == ("jvp(Net.encode)/neg", "f32[2,3]")  # from inside the fused computation
     assert ops["fusion.1"] == ("dot (no source recorded)", "f32[2,4]")
+    assert ops["copy.4"] == ("copy (no source recorded)", "f32[3,4]")  # an instruction XLA added
 
 
 def test_flop_count_multiplies_loops_and_matches_xla_without_them():

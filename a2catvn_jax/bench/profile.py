@@ -208,8 +208,9 @@ _CONTROL = ("while", "conditional", "call")  # their time is the time of the ope
 def hlo_ops(hlo_text: str) -> dict:
     """Instruction name -> (source, output shape) of a compiled HLO module's text. The
     source is the `op_name` XLA recorded (without the `jit(...)/` prefix); a fusion
-    without one takes the first `op_name` inside the computation it calls, or else
-    "OPCODE (no source recorded)" with the opcode of that computation's root."""
+    without one takes the first `op_name` inside the computation it calls; an
+    instruction left without a source is "OPCODE (no source recorded)", with the opcode
+    of the called computation's root for a fusion, else its own (e.g. a copy XLA added)."""
     ops, first_source, root_op, calls, computation = {}, {}, {}, {}, None
     for line in hlo_text.splitlines():
         head = _COMPUTATION.match(line)
@@ -222,24 +223,24 @@ def hlo_ops(hlo_text: str) -> dict:
         name, shape = m.group(1), m.group(2).split("{")[0].rstrip(",")
         source = _OP_NAME.search(line)
         source = re.sub(r"^jit\([^)]*\)/", "", source.group(1)) if source else ""
+        opcode = _OPCODE.search(line[m.end():])
+        opcode = opcode.group(1) if opcode else "?"
         if computation is not None:
             if source:
                 first_source.setdefault(computation, source)
-            opcode = _OPCODE.search(line[m.end():])
-            if line.lstrip().startswith("ROOT") and opcode:
-                root_op[computation] = opcode.group(1)
+            if line.lstrip().startswith("ROOT"):
+                root_op[computation] = opcode
         called = _CALLS.search(line)
         if called:
             calls[name] = called.group(1)
-        ops[name] = (source, shape)
+        ops[name] = (source, shape, opcode)
 
-    def source_of(name, source):
-        if source or name not in calls:
-            return source
-        called = calls[name]
-        return first_source.get(called) or (f"{root_op[called]} (no source recorded)" if called in root_op else "")
+    def source_of(name, source, opcode):
+        called = calls.get(name)
+        return (source or first_source.get(called)
+                or f"{root_op.get(called, opcode)} (no source recorded)")
 
-    return {name: (source_of(name, source), shape) for name, (source, shape) in ops.items()}
+    return {name: (source_of(name, source, opcode), shape) for name, (source, shape, opcode) in ops.items()}
 
 
 def op_times(update, ts, repeats: int = 5, top: int = 15) -> dict:
