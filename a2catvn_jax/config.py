@@ -348,7 +348,8 @@ class TrainConfig(_Section):
     rmsprop_decay: Fraction = 0.99  # RMSprop alpha
     rmsprop_eps: Positive = 1e-5
     max_grad_norm: Positive = 0.5
-    replay_size: Int = 2000  # replay buffer, steps per environment (whole rollouts are kept)
+    replay_size: Int = 2000  # replay buffer, steps per kept environment (whole rollouts are kept)
+    replay_envs: Count = 256  # environments kept per rollout (a new block each time): replay_size * min(B, this) steps
     replay_batch: Count = 16  # replay sequences per update (off-policy critic, pixel control, reward prediction)
     pixel_control_gamma: Fraction = 0.9
     pixel_control_cell: Count = 4

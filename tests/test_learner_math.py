@@ -331,6 +331,32 @@ def test_sample_sequences_only_from_filled_slots():
     assert set(x[0].tolist()) == {10, 11, 12, 20, 21, 22}
 
 
+def test_replay_keeps_a_rotating_block_of_environments():
+    """With fewer kept environments than B, rollout k keeps environments kE .. kE+E-1
+    (mod B) with their core state: every environment once per B / E rollouts."""
+    L, B, E, slots = 2, 6, 4, 3
+    buf = replay_lib.init({"x": jnp.zeros((L, B), jnp.int32)}, jnp.zeros((B, 2), jnp.int32), slots, envs=E)
+    assert buf.data["x"].shape == (slots, L, E) and buf.carry.shape == (slots, E, 2)
+    for k in range(4):
+        value = 100 * (k + 1) + jnp.arange(B, dtype=jnp.int32)  # rollout k, environment b -> 100(k+1) + b
+        buf = replay_lib.add(buf, {"x": jnp.broadcast_to(value, (L, B))}, jnp.broadcast_to(value[:, None], (B, 2)))
+    x = np.asarray(buf.data["x"])
+    assert np.all(x == x[:, :1])
+    # Slots after 4 rollouts: slot 0 holds rollout 3, slots 1 and 2 rollouts 1 and 2.
+    expect = {0: [400 + (12 + i) % B for i in range(E)], 1: [200 + (4 + i) % B for i in range(E)],
+              2: [300 + (8 + i) % B for i in range(E)]}
+    for slot, want in expect.items():
+        np.testing.assert_array_equal(x[slot, 0], want)
+        np.testing.assert_array_equal(np.asarray(buf.carry)[slot, :, 0], want)
+    seqs, carry = replay_lib.sample_sequences(buf, jax.random.PRNGKey(1), 300)
+    np.testing.assert_array_equal(np.asarray(carry)[:, 0], np.asarray(seqs["x"])[0])
+    # As many kept environments as B (or more): the whole rollout, as without a limit.
+    full = replay_lib.init({"x": jnp.zeros((L, B), jnp.int32)}, jnp.zeros((B, 2), jnp.int32), slots, envs=64)
+    assert full.data["x"].shape == (slots, L, B)
+    with pytest.raises(ValueError, match="at least one environment"):
+        replay_lib.init({"x": jnp.zeros((L, B))}, jnp.zeros((B, 2)), slots, envs=0)
+
+
 def _window_buffer(rewards_nonzero: bool, seed: int = 5):
     """4 slots, 3 filled; markers encode (rollout, step, env) in `target` and `rgb`."""
     L, B, slots, filled = 9, 3, 4, 3
@@ -540,6 +566,21 @@ def test_zero_weights_remove_replay_losses(lstm):
     _, metrics = jax.eval_shape(fns.update, ts)
     terms = {k[len("loss/"):] for k in metrics if k.startswith("loss/")}
     assert terms == {"actor", "critic", "entropy", "depth", "segmentation", "target_segmentation", "total"}
+
+
+def test_replay_envs_bounds_the_buffer_and_the_update_runs(lstm):
+    """`train.replay_envs` below B: the buffer keeps that many environments per rollout
+    and the update trains from it (each replay term finite)."""
+    cfg = load_config(None, TINY + ["train.replay_envs=3"])
+    fns = update_lib.make_update(lstm.env, lstm.net, cfg)
+    ts = jax.eval_shape(fns.init, jax.random.PRNGKey(0))
+    B, slots = lstm.env.num_envs, cfg.train.replay_size // cfg.train.rollout_length
+    assert ts.replay.data.rgb.shape[:3] == (slots, cfg.train.rollout_length + 1, 3) and B == 4
+    assert lstm.ts.replay.data.rgb.shape[2] == B  # the default keeps all of a small batch
+    ts, metrics = jax.jit(fns.update)(fns.init(jax.random.PRNGKey(0)))
+    assert int(ts.replay.count) == 1
+    assert {"loss/pixel_control", "loss/reward_prediction", "loss/off_policy_critic"} <= set(metrics)
+    assert _finite(metrics)
 
 
 AUTHORS_REPLAY = ["train.reward_prediction_loss=sigmoid", "train.reward_prediction_zero_fraction=0.3333",

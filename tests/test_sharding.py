@@ -21,9 +21,10 @@ SCRIPT = textwrap.dedent(
     from a2catvn_jax.agent.update import make_update, shard
     from a2catvn_jax.env import NavEnv
 
-    cfg = load_config(None, ["env.num_envs=4", "env.render.image_size=16", "env.scene.num_scenes=1",
+    OVERRIDES = ["env.num_envs=4", "env.render.image_size=16", "env.scene.num_scenes=1",
         "env.scene.grid=[1,1]", "env.goals_per_scene=2", "train.rollout_length=4", "train.replay_size=8",
-        "train.replay_batch=2", "agent.conv_channels=[4,8,8,8]", "agent.dense_size=16", "agent.core_size=16"])
+        "train.replay_batch=2", "agent.conv_channels=[4,8,8,8]", "agent.dense_size=16", "agent.core_size=16"]
+    cfg = load_config(None, OVERRIDES)
     env = NavEnv(cfg.env)
     init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
     assert len(jax.devices()) == 2
@@ -40,6 +41,13 @@ SCRIPT = textwrap.dedent(
     for a, b in zip(jax.tree_util.tree_leaves(sharded.params), jax.tree_util.tree_leaves(plain.params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6)
     np.testing.assert_array_equal(np.asarray(sharded.env_state.info.pose), np.asarray(plain.env_state.info.pose))
+    odd = load_config(None, [*OVERRIDES, "train.replay_envs=3"])
+    abstract = jax.eval_shape(make_update(env, make_networks(odd, env.num_actions), odd).init, jax.random.PRNGKey(0))
+    try:
+        shard(abstract, Mesh(np.array(jax.devices()), ("batch",)))
+        raise AssertionError("3 kept environments split over 2 devices")
+    except ValueError as e:
+        assert "train.replay_envs" in str(e) and "multiple of 2" in str(e), e
     print("OK")
     """
 )

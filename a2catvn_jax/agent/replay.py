@@ -1,10 +1,14 @@
 """A functional replay buffer of whole rollouts.
 
-The buffer keeps the last `slots` rollouts of all B environments: every leaf of a
-rollout pytree (a `Transition`) `[L, B, ...]` is stored at `[slot, L, B, ...]`, with the
-memory-core state the rollout started from (so replayed sequences are unrolled from the state the agent
-really had). Everything is a fixed-shape pytree, so adding and sampling happen inside
-the jitted update.
+The buffer keeps the last `slots` rollouts of E of the B environments: every leaf of a
+rollout pytree (a `Transition`) `[L, B, ...]` is stored at `[slot, L, E, ...]`, with the
+memory-core state the rollout started from (so replayed sequences are unrolled from the
+state the agent really had). With E = B every environment's rollout is kept; with E < B
+each rollout keeps a different block of E consecutive environments (rollout k keeps
+environments kE, ..., kE + E - 1, modulo B), so over B / E rollouts every environment is
+stored once and the memory is `slots * L * E` steps however large B grows, while the
+age of what is replayed (the last `slots` rollouts) stays the same. Everything is a
+fixed-shape pytree, so adding and sampling happen inside the jitted update.
 
 Sampling:
 - `sample_sequences`: n (rollout, environment) pairs, uniformly among the stored ones;
@@ -17,7 +21,7 @@ Sampling:
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import jax
 import jax.numpy as jnp
@@ -35,19 +39,40 @@ class Replay:
         return jax.tree_util.tree_leaves(self.data)[0].shape[0]
 
 
-def init(example, example_carry, slots: int) -> Replay:
-    """An empty buffer for rollouts shaped like `example` (leaves [L, B, ...])."""
-    zeros = lambda x: jnp.zeros((slots,) + x.shape, x.dtype)  # noqa: E731
+def init(example, example_carry, slots: int, envs: Optional[int] = None) -> Replay:
+    """An empty buffer for rollouts shaped like `example` (leaves [L, B, ...]) that keeps
+    `envs` environments of each (default: all B)."""
+    B = jax.tree_util.tree_leaves(example_carry)[0].shape[0]
+    E = B if envs is None else min(envs, B)
+    if E < 1:
+        raise ValueError(f"the replay must keep at least one environment per rollout, got {envs}")
+    zeros = lambda axis: lambda x: jnp.zeros(  # noqa: E731
+        (slots,) + x.shape[:axis] + (E,) + x.shape[axis + 1:], x.dtype)
     return Replay(
-        jax.tree_util.tree_map(zeros, example),
-        jax.tree_util.tree_map(zeros, example_carry),
+        jax.tree_util.tree_map(zeros(1), example),
+        jax.tree_util.tree_map(zeros(0), example_carry),
         jnp.zeros((), jnp.int32),
     )
 
 
+def stored_envs(replay: Replay, num_envs: int):
+    """[E] int32: the environments (of `num_envs`) whose rollout the next `add` keeps."""
+    E = jax.tree_util.tree_leaves(replay.carry)[0].shape[1]
+    if E == num_envs:
+        return jnp.arange(E)
+    return (replay.count * E + jnp.arange(E)) % num_envs
+
+
 def add(replay: Replay, rollout, carry) -> Replay:
-    """The buffer with `rollout` written over the oldest slot."""
+    """The buffer with `rollout` (leaves [L, B, ...], core state [B, ...]), or the block
+    of its environments that `stored_envs` names, written over the oldest slot."""
     slot = replay.count % replay.slots
+    B = jax.tree_util.tree_leaves(carry)[0].shape[0]
+    E = jax.tree_util.tree_leaves(replay.carry)[0].shape[1]
+    if E != B:
+        envs = stored_envs(replay, B)
+        rollout = jax.tree_util.tree_map(lambda x: jnp.take(x, envs, axis=1), rollout)
+        carry = jax.tree_util.tree_map(lambda x: jnp.take(x, envs, axis=0), carry)
     put = lambda buf, x: jax.lax.dynamic_update_index_in_dim(buf, x.astype(buf.dtype), slot, 0)  # noqa: E731
     return Replay(
         jax.tree_util.tree_map(put, replay.data, rollout),

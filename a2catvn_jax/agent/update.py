@@ -319,7 +319,8 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
         params = networks.init(k_param) if params is None else params
         env_state = env.reset(k_env, complexity=complexity(cfg, 0))
         agent = initial_agent(networks, B)
-        replay = replay_lib.init(transition_example(cfg, B), agent.carry, replay_slots) if uses_replay(cfg) else None
+        replay = (replay_lib.init(transition_example(cfg, B), agent.carry, replay_slots, tc.replay_envs)
+                  if uses_replay(cfg) else None)
         ts = TrainState(params, optimizer.init(params), env_state, agent, replay, k_train, jnp.zeros((), jnp.int32))
         if tc.replay_warmup and replay is not None:
             ts = warmup(cfg, env, networks, targets, ts)
@@ -357,6 +358,10 @@ def shard(ts: TrainState, mesh, axis: str = "batch") -> TrainState:
 
     replay = None
     if ts.replay is not None:
+        kept, devices = jax.tree_util.tree_leaves(ts.replay.carry)[0].shape[1], mesh.shape[axis]
+        if kept % devices:
+            raise ValueError(f"the replay keeps {kept} environments per rollout (train.replay_envs), which cannot be "
+                             f"split over {devices} devices: make it a multiple of {devices}")
         replay = replay_lib.Replay(tm(along(2), ts.replay.data), tm(along(1), ts.replay.carry), replicated)
     spec = TrainState(tm(lambda _: replicated, ts.params), tm(lambda _: replicated, ts.opt_state),
                       tm(along(0), ts.env_state), tm(along(0), ts.agent), replay, replicated, replicated)
