@@ -1,7 +1,8 @@
 """Throughput benchmarks.
 
     python -m a2catvn_jax.benchmark env [--batch-sizes 16 64 256 1024] [--resolutions 64 84 174]
-    python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5] [--processes 1 2]
+    python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
+        [--processes 1 2 | --batch-sizes 16 256 1024 4096]
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
         [--networks default configs/presets/authors_network.yaml]
     python -m a2catvn_jax.benchmark profile [--configs quickstart image_goals_cpu paper] [--updates 5]
@@ -20,7 +21,11 @@ pixels, with compile time and the share of the time spent in the environment (a
 rollout of random actions timed alone). With `--processes N ...`: for each N, N copies
 of that benchmark at once, each a process pinned to its share of the CPU cores
 (`run/workers.py`, what `experiments --jobs N` does), and the frames/s
-of all of them together: whether independent runs finish sooner side by side.
+of all of them together: whether independent runs finish sooner side by side. With
+`--batch-sizes B ...`: each configuration at each number of environments B, one process
+per size, with the memory it needs: the training state (parameters, optimiser,
+environments, replay), XLA's buffers for one update, and the process's peak resident
+memory.
 
 `network`: forward+backward frames/s of the conv base with the depth and segmentation
 heads on `--frames` (observation, target) pairs: as the update runs it (the target
@@ -68,7 +73,8 @@ def _header():
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.benchmark", description=__doc__.split("\n\n")[0])
     parser.add_argument("what", choices=["env", "train", "network", "profile"], help="what to benchmark")
-    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[16, 64, 256, 1024], help="env")
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=None, metavar="B",
+                        help="env (default: 16 64 256 1024); train: one process per size, with its peak memory")
     parser.add_argument("--resolutions", type=int, nargs="+", default=[64, 84, 174], help="env")
     parser.add_argument("--steps", type=int, default=5, help="env: timed steps per setting")
     parser.add_argument("--gl-frames", type=int, default=200, help="env: frames timed for MuJoCo's renderer")
@@ -93,11 +99,15 @@ def main(argv=None) -> None:
     cli.add_config_args(parser, config=False, help="configuration changes applied to every benchmarked setting")
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args(argv)
+    if args.what == "train" and args.processes and args.batch_sizes:
+        parser.error("train: give --processes or --batch-sizes, not both")
     overrides = cli.overrides_of(args)
     _header()
     with cli.errors(parser, code=1):
         if args.what == "train" and args.processes:
             rows = _train_processes_table(args, overrides)
+        elif args.what == "train" and args.batch_sizes:
+            rows = _train_batch_table(args, overrides)
         elif args.what == "train":
             rows = []
             print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'env fps':>9} {'env share':>10}")
@@ -135,25 +145,52 @@ def main(argv=None) -> None:
                 json.dump(rows, f, indent=1)
 
 
+def _train_children(args, name: str, settings: list, jobs: int, tmp: str) -> list:
+    """`benchmark train --configs NAME` in one process per entry of `settings` (extra
+    KEY=VALUE overrides), `jobs` at a time, each pinned to its share of the cores: the
+    row each one wrote."""
+    out = [Path(tmp) / f"{name}_{jobs}_{i}.json" for i in range(len(settings))]
+    logs = [p.with_suffix(".log") for p in out]
+    commands = [[sys.executable, "-m", "a2catvn_jax.benchmark", "train", "--configs", name, "--updates", str(args.updates),
+                 "--paper-resolution", str(args.paper_resolution), "--json", str(path),
+                 *(["--set", *args.set_overrides, *extra] if args.set_overrides or extra else [])]
+                for path, extra in zip(out, settings)]
+    codes = workers.run_pool(commands, jobs, logs)
+    if any(codes):
+        i = next(i for i, c in enumerate(codes) if c)
+        tail = logs[i].read_text().strip().splitlines()[-1:] or ["(no output)"]
+        raise workers.WorkerError(f"a benchmark process failed (exit status {codes[i]}): {tail[0]}")
+    return [json.loads(p.read_text())[0] for p in out]
+
+
+def _train_batch_table(args, overrides) -> list:
+    """`train` at each batch size of `--batch-sizes`, one process each (one at a time, on
+    every core), so that each size's peak memory is its own."""
+    rows = []
+    args.set_overrides = overrides
+    print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'state GiB':>10} "
+          f"{'update GiB':>11} {'peak GiB':>9}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.configs:
+            for batch in args.batch_sizes:
+                (r,) = _train_children(args, name, [[f"env.num_envs={batch}"]], 1, tmp)
+                rows.append(r)
+                update = "-" if r["update_gib"] is None else f"{r['update_gib']:.2f}"
+                print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
+                      f"{r['state_gib']:10.2f} {update:>11} {r['peak_rss_gib']:9.2f}", flush=True)
+    return rows
+
+
 def _train_processes_table(args, overrides) -> list:
     """`train` in N processes at once for each N of `--processes`: their frames/s and the sum."""
     rows = []
+    args.set_overrides = overrides
     print(f"{'config':>10} {'processes':>9} {'cores each':>10} {'train fps per process':>34} {'train fps, all':>15}")
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.configs:
             for n in args.processes:
                 groups = workers.core_groups(n)
-                out = [Path(tmp) / f"{name}_{n}_{i}.json" for i in range(n)]
-                command = lambda i: [sys.executable, "-m", "a2catvn_jax.benchmark", "train", "--configs", name,  # noqa: E731
-                                     "--updates", str(args.updates), "--paper-resolution", str(args.paper_resolution),
-                                     "--json", str(out[i]), *(["--set", *overrides] if overrides else [])]
-                logs = [Path(tmp) / f"{name}_{n}_{i}.log" for i in range(n)]
-                codes = workers.run_pool([command(i) for i in range(n)], n, logs)
-                if any(codes):
-                    i = next(i for i, c in enumerate(codes) if c)
-                    tail = logs[i].read_text().strip().splitlines()[-1:] or ["(no output)"]
-                    raise workers.WorkerError(f"a benchmark process failed (exit status {codes[i]}): {tail[0]}")
-                fps = [json.loads(p.read_text())[0]["train_fps"] for p in out]
+                fps = [r["train_fps"] for r in _train_children(args, name, [[]] * n, n, tmp)]
                 cores = "/".join(str(len(g)) for g in groups)
                 rows.append({"config": name, "processes": n, "cores": [len(g) for g in groups], "train_fps": fps,
                              "train_fps_total": sum(fps)})
@@ -204,7 +241,7 @@ def _bench_env_table(args, overrides) -> list:
     header = f"{'batch':>6} {'res':>5} {'geoms':>6} {'env fps':>10} {'compile s':>10} {'GL fps':>8} {'ratio':>7}"
     print(header)
     for res in args.resolutions:
-        for batch in args.batch_sizes:
+        for batch in args.batch_sizes or [16, 64, 256, 1024]:
             if batch * res * res > args.max_pixels:
                 print(f"{batch:>6} {res:>5}  skipped (batch*pixels > --max-pixels)")
                 continue

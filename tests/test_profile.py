@@ -124,6 +124,36 @@ def test_train_benchmark_in_several_processes(monkeypatch, capsys, tmp_path):
     assert f"{two['train_fps_total']:15.0f}" in printed and "train fps, all" in printed
 
 
+def test_train_benchmark_at_several_batch_sizes(monkeypatch, capsys, tmp_path):
+    """--batch-sizes: one process per size, one at a time, each with env.num_envs set;
+    the rows carry each size's memory. The pool runs each command in this process on
+    the tiny learner (its peak resident memory is this process's)."""
+    pools = []
+
+    def pool(commands, jobs, logs):
+        pools.append((len(commands), jobs))
+        for command in commands:
+            benchmark.main(command[3:])
+        return [0] * len(commands)
+
+    monkeypatch.setattr(workers, "run_pool", pool)
+    tiny = TINY_LEARNER + ["env.scene.num_scenes=1"] + ONLY_DEPTH
+    out = tmp_path / "rows.json"
+    benchmark.main(["train", "--configs", "quickstart", "--updates", "1", "--batch-sizes", "2", "6", "--json", str(out),
+                    "--set", *tiny])
+    assert pools == [(1, 1), (1, 1)]
+    rows = json.loads(out.read_text())
+    assert [r["batch"] for r in rows] == [2, 6]
+    for r in rows:
+        assert r["train_fps"] > 0 and 0 < r["state_gib"] < r["peak_rss_gib"] and r["update_gib"] > 0
+    # The replay keeps every environment of these small batches: the state grows with B.
+    assert rows[1]["state_gib"] > rows[0]["state_gib"]
+    assert "peak GiB" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exit_info:
+        benchmark.main(["train", "--processes", "1", "--batch-sizes", "16"])
+    assert exit_info.value.code == 2 and "not both" in capsys.readouterr().err
+
+
 def test_train_benchmark_process_failure_is_one_line(monkeypatch, capsys, tmp_path):
     def pool(commands, jobs, logs):
         for log in logs:

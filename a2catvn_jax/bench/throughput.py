@@ -68,19 +68,42 @@ def bench_mujoco_gl(env, resolution: int, poses: np.ndarray, frames: int) -> flo
     )
 
 
+def _gib(n_bytes) -> float:
+    return n_bytes / 2**30
+
+
 def _timed_updates(cfg, env, updates: int):
-    """(compile seconds, frames/s) of the training update."""
+    """(compile seconds, frames/s, memory) of the training update. Memory in GiB:
+    `state` (the training state: parameters, optimiser, environments, replay), `update`
+    (XLA's buffers for one update beyond its donated argument, from the compiled
+    program), and the process's peak resident memory so far."""
     init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
     t0 = time.perf_counter()
     state = jax.block_until_ready(init(jax.random.PRNGKey(0)))
-    state, m = update(state)
+    compiled = update.lower(state).compile()
+    stats = compiled.memory_analysis()
+    state, m = compiled(state)
     jax.block_until_ready(m)
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     for _ in range(updates):
-        state, m = update(state)
+        state, m = compiled(state)
     jax.block_until_ready(m)
-    return compile_s, updates * frames_per_update(cfg) / (time.perf_counter() - t0)
+    fps = updates * frames_per_update(cfg) / (time.perf_counter() - t0)
+    memory = {"state_gib": _gib(sum(x.nbytes for x in jax.tree_util.tree_leaves(state))),
+              "update_gib": None if stats is None else _gib(stats.temp_size_in_bytes + stats.output_size_in_bytes
+                                                            - stats.alias_size_in_bytes),
+              "peak_rss_gib": _gib(peak_rss_bytes())}
+    return compile_s, fps, memory
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident memory (Linux and macOS)."""
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak if sys.platform == "darwin" else peak * 1024
 
 
 def random_steps(env, steps: int):
@@ -112,10 +135,10 @@ def _env_rollout_fps(env, steps: int, repeats: int) -> float:
 def bench_train(name: str, overrides, updates: int) -> dict:
     cfg = load_config(CONFIGS / f"{name}.yaml", overrides)
     env = NavEnv(cfg.env)
-    compile_s, fps = _timed_updates(cfg, env, updates)
+    compile_s, fps, memory = _timed_updates(cfg, env, updates)
     env_fps = _env_rollout_fps(env, cfg.train.rollout_length, max(2, updates))
     return {"config": name, "batch": env.num_envs, "resolution": cfg.env.render.image_size, "train_fps": fps,
-            "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps}
+            "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps, **memory}
 
 
 def bench_network(resolution: int, frames: int, targets: int, repeats: int, overrides=(), config=None,
