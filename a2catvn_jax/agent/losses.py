@@ -10,6 +10,10 @@ Q-learning bootstrapped by max_a Q at the end of the sequence, on pseudo-rewards
 are the mean absolute change of the grayscale image (or of R, G and B) in each cell;
 both come from rlax.
 
+Every function checks the ranks and shapes of its inputs with chex when it is traced
+(no cost at run time): a misshaped input fails there, naming the shapes, instead of
+broadcasting into a wrong loss.
+
 Every term is a mean over its elements (steps, sequences, cells, pixels), not the sum
 over the rollout that the paper's equations write; the squared-error terms carry a
 1/2 (critic, off-policy critic, pixel control), so that a weight w here equals a weight
@@ -19,6 +23,7 @@ paper and the authors' code.
 
 from __future__ import annotations
 
+import chex
 import jax
 import jax.numpy as jnp
 import rlax
@@ -39,6 +44,9 @@ def bootstrapped_returns(rewards, dones, bootstrap, gamma: float, truncated=None
     bootstrap from that value (g_{t-1} = r_t + gamma v(s_t)) and the step itself, whose
     next state the auto-reset replaced, gives no learning signal (g_t - v(s_t) = 0).
     """
+    chex.assert_rank([rewards, dones, bootstrap], [2, 2, 1])
+    chex.assert_equal_shape([rewards, dones] + [x for x in (truncated, values) if x is not None])
+    chex.assert_shape(bootstrap, rewards.shape[1:])
     discounts = gamma * (1.0 - dones.astype(jnp.float32))
     if truncated is not None:
         rewards = jnp.where(truncated, values, rewards)
@@ -52,6 +60,9 @@ def actor_critic_losses(logits, values, actions, returns):
     actor: -log pi(a|s) * (g - v) with the advantage held constant; critic:
     1/2 (g - v)^2; negative entropy: sum_a pi log pi.
     """
+    chex.assert_rank([logits, values, actions, returns], [3, 2, 2, 2])
+    chex.assert_equal_shape([values, actions, returns, logits[..., 0]])
+    chex.assert_type(actions, int)
     log_pi = jax.nn.log_softmax(logits)
     log_pi_a = jnp.take_along_axis(log_pi, actions[..., None], -1)[..., 0]
     advantage = jax.lax.stop_gradient(returns - values)
@@ -69,6 +80,8 @@ def off_policy_critic_loss(values, rewards, dones, gamma: float, truncated=None)
     state, cut at episode ends; with `truncated` [T, N], time-outs bootstrap from the
     critic instead (see `bootstrapped_returns`).
     """
+    chex.assert_rank([values, rewards, dones], 2)
+    chex.assert_equal_shape([values[:-1], rewards, dones])
     held = jax.lax.stop_gradient(values)
     returns = bootstrapped_returns(rewards, dones, held[-1], gamma, truncated, None if truncated is None else held[:-1])
     return jnp.mean(0.5 * jnp.square(returns - values[:-1]))
@@ -89,6 +102,8 @@ def reward_prediction_loss(logits, reward, kind: str = "softmax"):
       over N and the 3 outputs. Its gradient with respect to z_c is (s(z_c) - y_c) / 3N,
       about a third of the softmax one's (softmax(z)_c - y_c) / N.
     """
+    chex.assert_rank([logits, reward], [2, 1])
+    chex.assert_equal_shape_prefix([logits, reward], 1)
     labels = reward_class(reward)
     if kind == "softmax":
         return cross_entropy(logits, labels)
@@ -126,7 +141,12 @@ def pixel_control_loss(rgb, actions, dones, q_values, gamma: float, cell: int, r
     kind of `pixel_control_rewards`. A step that ended an episode has no pseudo-reward
     (its next frame belongs to a new episode) and no bootstrap beyond it.
     """
+    chex.assert_rank([rgb, actions, dones, q_values], [4, 1, 1, 4])
+    chex.assert_type(rgb, jnp.uint8)
+    chex.assert_equal_shape([actions, dones])
     T = actions.shape[0]
+    chex.assert_axis_dimension(rgb, 0, T + 1)
+    chex.assert_axis_dimension(q_values, 0, T + 1)
     not_done = 1.0 - dones.astype(jnp.float32)
     rewards = pixel_control_rewards(rgb, cell, reward) * not_done[:, None, None]
     A = q_values.shape[-1]
@@ -158,12 +178,14 @@ def downsize_pick(x, factor: int):
 
 
 def mse(prediction, target):
-    """mean (prediction - target)^2 over every element."""
+    """mean (prediction - target)^2 over every element (shapes must be equal)."""
+    chex.assert_equal_shape([prediction, target])
     return jnp.mean(jnp.square(prediction - target))
 
 
 def cross_entropy(logits, labels):
     """Mean softmax cross-entropy of logits [..., C] against integer labels [...]."""
+    chex.assert_equal_shape([logits[..., 0], labels])
     log_p = jax.nn.log_softmax(logits)
     return -jnp.mean(jnp.take_along_axis(log_p, labels[..., None].astype(jnp.int32), -1))
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Any, Optional
 
+import chex
 import jax.numpy as jnp
 from flax import struct
 
@@ -51,6 +52,17 @@ class Transition:
     @property
     def inputs(self) -> Inputs:
         return Inputs(self.rgb, self.target, self.prev_action, self.prev_reward, self.reset)
+
+    def check(self, steps: int, batch: int, image_size: int) -> None:
+        """Assert (chex, when traced) that this is a rollout of `steps` steps in `batch`
+        environments with `image_size` square images, each field of its dtype."""
+        chex.assert_shape(self.rgb, (steps + 1, batch, image_size, image_size, 3))
+        chex.assert_type(self.rgb, jnp.uint8)
+        chex.assert_shape([self.target, self.prev_action, self.prev_reward, self.reset], (steps + 1, batch))
+        chex.assert_shape([self.action, self.reward, self.terminated, self.truncated], (steps, batch))
+        chex.assert_type([self.target, self.prev_action, self.action, self.prev_reward, self.reward],
+                         [int, int, int, float, float])
+        chex.assert_type([self.reset, self.terminated, self.truncated], bool)
 
     @property
     def done(self):

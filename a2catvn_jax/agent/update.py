@@ -200,6 +200,7 @@ def loss(cfg: Config, networks: Networks, targets: Targets, params: Params, traj
     """(total loss, per-term losses) of one rollout `traj` [T(+1), B] started from core state
     `carry0`, its frames' ground truth, and (when given) samples of the replay buffer."""
     tc, w = cfg.train, cfg.train.loss_weights
+    traj.check(tc.rollout_length, traj.action.shape[1], cfg.env.render.image_size)
     target_feats = networks.target_stream(params, targets.rgb)
     conv4, out = unroll(networks, params, target_feats, traj.inputs, carry0)
     logits, values = actor_critic_sequence(networks, params, out)

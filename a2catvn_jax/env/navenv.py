@@ -44,6 +44,7 @@ from __future__ import annotations
 
 from typing import Optional
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -209,6 +210,9 @@ class NavEnv:
     def step(self, state: State, action, world: Optional[WorldArrays] = None) -> State:
         """Apply actions [B] (int) in `world` (default: the environment's own) and auto-reset
         finished episodes."""
+        action = jnp.asarray(action)
+        chex.assert_shape(action, (self.num_envs,))
+        chex.assert_type(action, int)
         w = self._world(world)
         info = state.info
         keys, noise_key = jax.vmap(jax.random.split, out_axes=1)(info.key)

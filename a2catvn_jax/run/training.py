@@ -83,6 +83,11 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
             log(f"initialised from {init_from}: {len(loaded)} arrays of {_modules(loaded)}; "
                 f"{len(kept)} arrays keep their initial values ({_modules(kept)})")
         ckpt.save(state, cfg, 0)
+    # One compile serves the whole run: the update is compiled ahead of time for this
+    # state, and a state of other shapes or dtypes would be an error, not a recompile.
+    t_compile = time.perf_counter()
+    update_fn = update_fn.lower(state).compile()
+    log(f"compiled the update in {time.perf_counter() - t_compile:.1f} s")
     start = int(state.update)
     last = total_updates(cfg)
     end = last if max_updates is None else min(last, start + max_updates)
