@@ -128,7 +128,8 @@ def profile_update(cfg: Config, repeats: int = 5, ops: int = 0) -> dict:
     networks = make_networks(cfg, env.num_actions)
     fns = update_lib.make_update(env, networks, cfg)
     ts = fns.init(jax.random.PRNGKey(0))
-    ts, _ = fns.update(ts)  # compiles; the buffer now holds a rollout
+    update = fns.update.lower(ts).compile()  # one compile serves the timing, the trace and its HLO
+    ts, _ = update(ts)  # the buffer now holds a rollout
     jax.block_until_ready(ts)
     targets = update_lib.targets_of(cfg, env)
     frames = update_lib.frames_per_update(cfg)
@@ -179,7 +180,6 @@ def profile_update(cfg: Config, repeats: int = 5, ops: int = 0) -> dict:
     phases["optimiser (clip + RMSprop)"] = _timed(step, grads, ts.opt_state, ts.params, repeats=repeats)
 
     # the update donates its argument: each call takes the state the one before returned
-    update = fns.update
     jax.block_until_ready(ts)
     t0 = time.perf_counter()
     for _ in range(repeats):
@@ -187,7 +187,7 @@ def profile_update(cfg: Config, repeats: int = 5, ops: int = 0) -> dict:
     jax.block_until_ready(metrics)
     whole = (time.perf_counter() - t0) / repeats
     parts = phases["rollout (environment + policy)"] + phases["optimiser (clip + RMSprop)"] + whole_loss
-    flops, lower_bound = matmul_flops(update, ts)
+    flops, lower_bound = matmul_flops(fns.update, ts)
     top_ops = op_times(update, ts, repeats, ops) if ops > 0 else None
     return {
         "batch": env.num_envs, "resolution": cfg.env.render.image_size, "rollout_length": cfg.train.rollout_length,
@@ -244,11 +244,14 @@ def hlo_ops(hlo_text: str) -> dict:
 
 
 def op_times(update, ts, repeats: int = 5, top: int = 15) -> dict:
-    """The `top` XLA operations of the jitted `update(ts) -> (ts, metrics)` (its argument
-    donated) that take the most time over `repeats` calls under `jax.profiler.trace`:
-    {"ops": [{op, ms_per_update, calls_per_update, source, shape}], "ops_ms_per_update":
-    the time of every operation of the update (loops counted by what runs inside them)}."""
-    info = hlo_ops(update.lower(ts).compile().as_text())
+    """The `top` XLA operations of `update(ts) -> (ts, metrics)` (its argument donated;
+    jitted, or already compiled for `ts`) that take the most time over `repeats` calls
+    under `jax.profiler.trace`: {"ops": [{op, ms_per_update, calls_per_update, source,
+    shape}], "ops_ms_per_update": the time of every operation of the update (loops
+    counted by what runs inside them)}."""
+    if not isinstance(update, jax.stages.Compiled):
+        update = update.lower(ts).compile()
+    info = hlo_ops(update.as_text())
     ts, metrics = update(ts)
     jax.block_until_ready(metrics)
     with tempfile.TemporaryDirectory() as tmp:
