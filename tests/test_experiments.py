@@ -74,8 +74,10 @@ def test_shared_variants_share_runs_and_seeds_do_not():
     aux, curriculum = ex.EXPERIMENTS["aux"], ex.EXPERIMENTS["curriculum"]
     pre, a = ex.plan(aux, "cpu", [0], "/r")[:2]
     c = ex.plan(curriculum, "cpu", [0], "/r")
-    assert c[0].workdir == a.workdir  # "no curriculum" is A2CAT-VN as configured
-    assert c[1].workdir != a.workdir and c[1].cfg.train.curriculum
+    assert c[1].workdir == a.workdir  # the CPU task is configured with its curriculum
+    assert c[0].workdir != a.workdir and not c[0].cfg.train.curriculum
+    paper = ex.plan(curriculum, "paper", [0], "/r")
+    assert paper[0].workdir == ex.plan(aux, "paper", [0], "/r")[1].workdir  # the paper-sized one without
     assert pre.workdir != a.workdir and pre.cfg == a.cfg  # same config, pre-trained: another run
     assert ex.plan(ex.EXPERIMENTS["pretraining"], "cpu", [0], "/r")[1].workdir == pre.workdir
     s0, s1 = ex.plan(aux, "cpu", [0, 1], "/r")[:2]

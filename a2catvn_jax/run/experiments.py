@@ -178,7 +178,7 @@ EXPERIMENTS = {e.name: e for e in (
     ),
     Experiment(
         "curriculum", "with vs without the curriculum", "image_goals",
-        (Variant("no curriculum"), Variant("curriculum", ("train.curriculum=true",))),
+        (Variant("no curriculum", ("train.curriculum=false",)), Variant("curriculum", ("train.curriculum=true",))),
         paper="The curriculum (complexity 0.3 to 1.0 between 5M and 10M frames) is part of the House3D run; "
               "the paper reports no ablation of it.",
     ),
