@@ -145,19 +145,23 @@ def main(argv=None) -> None:
                 json.dump(rows, f, indent=1)
 
 
-def _train_children(args, name: str, settings: list, jobs: int, tmp: str) -> list:
+def _train_children(args, name: str, overrides, settings: list, jobs: int, tmp: str, tag: str) -> list:
     """`benchmark train --configs NAME` in one process per entry of `settings` (extra
-    KEY=VALUE overrides), `jobs` at a time, each pinned to its share of the cores: the
-    row each one wrote."""
-    out = [Path(tmp) / f"{name}_{jobs}_{i}.json" for i in range(len(settings))]
+    KEY=VALUE overrides after `overrides`), `jobs` at a time, each pinned to its share of
+    the cores: the row each one wrote."""
+    out = [Path(tmp) / f"{name}_{tag}_{i}.json" for i in range(len(settings))]
     logs = [p.with_suffix(".log") for p in out]
     commands = [[sys.executable, "-m", "a2catvn_jax.benchmark", "train", "--configs", name, "--updates", str(args.updates),
                  "--paper-resolution", str(args.paper_resolution), "--json", str(path),
-                 *(["--set", *args.set_overrides, *extra] if args.set_overrides or extra else [])]
+                 *(["--set", *overrides, *extra] if overrides or extra else [])]
                 for path, extra in zip(out, settings)]
     codes = workers.run_pool(commands, jobs, logs)
     if any(codes):
         i = next(i for i, c in enumerate(codes) if c)
+        if codes[i] < 0:  # run_pool gives -N for a process killed by signal N
+            oom = " (the kernel's out-of-memory killer sends it)" if codes[i] == -9 else ""
+            raise workers.WorkerError(f"a benchmark process was killed by signal {-codes[i]}{oom}: "
+                                      f"{' '.join(commands[i][3:])}")
         tail = logs[i].read_text().strip().splitlines()[-1:] or ["(no output)"]
         raise workers.WorkerError(f"a benchmark process failed (exit status {codes[i]}): {tail[0]}")
     return [json.loads(p.read_text())[0] for p in out]
@@ -167,13 +171,12 @@ def _train_batch_table(args, overrides) -> list:
     """`train` at each batch size of `--batch-sizes`, one process each (one at a time, on
     every core), so that each size's peak memory is its own."""
     rows = []
-    args.set_overrides = overrides
     print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'state GiB':>10} "
           f"{'update GiB':>11} {'peak GiB':>9}")
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.configs:
             for batch in args.batch_sizes:
-                (r,) = _train_children(args, name, [[f"env.num_envs={batch}"]], 1, tmp)
+                (r,) = _train_children(args, name, overrides, [[f"env.num_envs={batch}"]], 1, tmp, f"b{batch}")
                 rows.append(r)
                 update = "-" if r["update_gib"] is None else f"{r['update_gib']:.2f}"
                 print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
@@ -184,13 +187,12 @@ def _train_batch_table(args, overrides) -> list:
 def _train_processes_table(args, overrides) -> list:
     """`train` in N processes at once for each N of `--processes`: their frames/s and the sum."""
     rows = []
-    args.set_overrides = overrides
     print(f"{'config':>10} {'processes':>9} {'cores each':>10} {'train fps per process':>34} {'train fps, all':>15}")
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.configs:
             for n in args.processes:
                 groups = workers.core_groups(n)
-                fps = [r["train_fps"] for r in _train_children(args, name, [[]] * n, n, tmp)]
+                fps = [r["train_fps"] for r in _train_children(args, name, overrides, [[]] * n, n, tmp, f"p{n}")]
                 cores = "/".join(str(len(g)) for g in groups)
                 rows.append({"config": name, "processes": n, "cores": [len(g) for g in groups], "train_fps": fps,
                              "train_fps_total": sum(fps)})

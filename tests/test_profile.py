@@ -166,3 +166,12 @@ def test_train_benchmark_process_failure_is_one_line(monkeypatch, capsys, tmp_pa
     assert exit_info.value.code == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["error: a benchmark process failed (exit status 1): RuntimeError: out of memory"]
+
+    def killed(commands, jobs, logs):
+        return [-9] * len(commands)
+
+    monkeypatch.setattr(workers, "run_pool", killed)
+    with pytest.raises(SystemExit):
+        benchmark.main(["train", "--configs", "paper", "--batch-sizes", "4096"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "killed by signal 9 (the kernel's out-of-memory killer" in err[0] and "4096" in err[0]
