@@ -56,10 +56,9 @@ def init(example, example_carry, slots: int, envs: Optional[int] = None) -> Repl
 
 
 def stored_envs(replay: Replay, num_envs: int):
-    """[E] int32: the environments (of `num_envs`) whose rollout the next `add` keeps."""
+    """[E] int32: the environments (of `num_envs`) whose rollout the next `add` keeps
+    (all of them, in order, when E = num_envs)."""
     E = jax.tree_util.tree_leaves(replay.carry)[0].shape[1]
-    if E == num_envs:
-        return jnp.arange(E)
     return (replay.count * E + jnp.arange(E)) % num_envs
 
 
