@@ -933,6 +933,9 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
     {"experiment": name, "pending": [run names]}: a long experiment can be trained a
     variant at a time, across sittings and machines, through the store.
 
+    Runs train seed by seed (every variant of seed 0, then of seed 1, ...), so an
+    experiment stopped part-way leaves comparable seeds behind.
+
     `jobs` > 1 trains that many runs at once, each in a process of its own pinned to its
     share of the CPU cores (`workers.run_pool`; on a CPU with few cores the runs finish
     sooner in all, docs/benchmarks.md; on one GPU keep 1); each process trains,
@@ -964,13 +967,13 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
     stored = sum(r.is_stored() for r in runs)
     log(f"{exp.name}: {len(runs)} runs, {stored} stored in {store}, {len(runs) - stored} to train or finish")
     to_train = {}  # work directory -> run: variants with the same configuration share one run
-    for run in runs:
+    for run in sorted(runs, key=lambda r: r.seed):  # seed by seed: a stopped experiment leaves whole seeds
         if not run.is_stored() and (train_only is None or run.variant.label in train_only):
             to_train.setdefault(run.workdir, run)
     if jobs > 1 and to_train:
         _train_in_processes(exp, scale, list(to_train.values()), jobs, episodes=episodes, root=root, docs=docs,
                             store=store, overrides=overrides, log=log)
-    for i, run in enumerate(runs):
+    for i, run in sorted(enumerate(runs), key=lambda ir: ir[1].seed):
         if run.is_stored() or run.workdir not in to_train:
             continue
         log(f"[{i + 1}/{len(runs)}] {run.name}")
