@@ -208,6 +208,9 @@ class RenderConfig(_Section):
     fovy: Annotated[float, Strict(), Field(gt=10, lt=120)] = 60.0  # vertical field of view, degrees
     column_candidates: Count = 24  # per-image-column candidate cap of the culled renderer
     culling: Bool = True
+    # raycast: this package's exact ray caster; mjx: MuJoCo's mjx.render (impl warp, package warp-lang);
+    # auto: the faster of the two on this device, measured when the environment is built
+    backend: Literal["raycast", "mjx", "auto"] = "raycast"
 
     def _cross_checks(self, k):
         if self.image_size < 16:

@@ -19,6 +19,7 @@ import pytest
 
 from a2catvn_jax.env import camera, navgrid
 from a2catvn_jax.env.geometry import Geometry, pack, take
+from a2catvn_jax.env.mjx_render import MjxRenderer, fields_of
 from a2catvn_jax.env.render import CameraSpec, Frame, render, render_batch
 from a2catvn_jax.env.scenes import (
     AGENT_RADIUS,
@@ -78,6 +79,9 @@ PRIMITIVES_XML = """
             material="wood"/>
       <geom name="lamp_1" type="capsule" size="0.1 0.3" pos="0 0.4 0.3" quat="1 1 0 0"
             rgba="1 1 1 1"/>
+    </body>
+    <body name="agent" mocap="true">
+      <camera name="agent_cam" xyaxes="0 -1 0 0 0 1"/>
     </body>
   </worldbody>
 </mujoco>
@@ -262,6 +266,17 @@ def _exact_renderer(spec: CameraSpec):
     return jax.jit(functools.partial(render_batch, spec=spec))
 
 
+def _mjx_renderer(spec: CameraSpec, batch: Batch):
+    """`mjx.render` (MuJoCo Warp) of a batch, one render context from its first scene."""
+    renderer = MjxRenderer(batch.models[0], spec)
+    fields = fields_of(batch.models)
+
+    def run(geometry, scene, pos, yaw, tilt):
+        return renderer.render(fields, geometry.cls, scene, pos, yaw, tilt)
+
+    return jax.jit(run)
+
+
 @functools.lru_cache(maxsize=None)
 def _brute_renderer(spec: CameraSpec):
     one = functools.partial(render, spec=spec, culled=False)
@@ -279,14 +294,17 @@ def _numpy(frame: Frame) -> Frame:
 @pytest.fixture(scope="module")
 def frames(generated, primitives):
     """frames(batch name, path) -> numpy Frame, rendered once per module.
-    path "exact": render_batch; "brute": render(..., culled=False)."""
+    path "exact": render_batch; "brute": render(..., culled=False); "mjx": the mjx backend."""
     batches = {"generated": generated, "primitives": primitives}
     memo = {}
 
     def get(name: str, path: str) -> Frame:
         if (name, path) not in memo:
             b = batches[name]
-            fn = _exact_renderer(b.spec) if path == "exact" else _brute_renderer(b.spec)
+            if path == "mjx":
+                fn = _mjx_renderer(b.spec, b)
+            else:
+                fn = _exact_renderer(b.spec) if path == "exact" else _brute_renderer(b.spec)
             memo[name, path] = _numpy(fn(*b.args()))
         return memo[name, path]
 
@@ -343,7 +361,7 @@ def _compare_with_mujoco(b: Batch, f: Frame):
     return lines, (max_err, hit.shape[0], hit.size, int(hit.sum()), ties)
 
 
-@pytest.mark.parametrize("path", ["exact", "brute"])
+@pytest.mark.parametrize("path", ["exact", "brute", "mjx"])
 @pytest.mark.parametrize("name", ["generated", "primitives"])
 def test_depth_and_geom_match_mj_ray(name, path, frames, request):
     b = request.getfixturevalue(name)
@@ -410,9 +428,12 @@ def test_ray_check_catches_what_culling_misses(generated):
 # 3. Scenes of one batch keep their own geometry.
 
 
-def test_scenes_in_one_batch_render_their_own_geometry(generated, frames):
+@pytest.mark.parametrize("path", ["exact", "mjx"])
+def test_scenes_in_one_batch_render_their_own_geometry(generated, frames, path):
+    """Scenes of one batch (with the mjx backend: one render context, built from
+    scene 0) each render their own geometry."""
     b = generated
-    f = frames("generated", "exact")
+    f = frames("generated", path)
     p, q = b.pair
     assert (b.scene[p], b.scene[q]) == (0, 1)
     assert np.array_equal(b.pos[p], b.pos[q]) and b.yaw[p] == b.yaw[q] and b.tilt[p] == b.tilt[q]
@@ -431,10 +452,11 @@ def test_scenes_in_one_batch_render_their_own_geometry(generated, frames):
 # 4. Segmentation and image formats.
 
 
+@pytest.mark.parametrize("path", ["exact", "mjx"])
 @pytest.mark.parametrize("name", ["generated", "primitives"])
-def test_segmentation_and_formats(name, frames, request):
+def test_segmentation_and_formats(name, path, frames, request):
     b = request.getfixturevalue(name)
-    f = frames(name, "exact")
+    f = frames(name, path)
     n = len(b.scene)
     assert f.rgb.shape == (n, H, W, 3) and f.rgb.dtype == np.uint8
     assert f.depth.shape == (n, H, W) and f.depth.dtype == np.float32

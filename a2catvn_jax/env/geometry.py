@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
+from a2catvn_jax.env.scenes.mjcf import PAD_PREFIX
 from a2catvn_jax.env.scenes.spec import CLASS_NAMES, class_of_name, half_extents
 
 # Intersection families: world-aligned boxes (a box whose rotation permutes the world
@@ -90,11 +91,13 @@ def _world_aabb(gtype: int, pos, rot, size) -> np.ndarray:
     return np.concatenate([pos - half, pos + half])
 
 
-def _visible(m: mujoco.MjModel, i: int) -> bool:
-    """Whether mj_ray considers geom i (it skips alpha-0 geoms)."""
+def seen(m: mujoco.MjModel, i: int) -> bool:
+    """Whether `mujoco.mj_ray` can hit geom i (it skips alpha-0 geoms) and it is not
+    layout padding ("pad_" names)."""
+    name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, i) or ""
     mat = m.geom_matid[i]
     alpha = m.mat_rgba[mat, 3] if mat >= 0 else m.geom_rgba[i, 3]
-    return bool(alpha > 0)
+    return bool(alpha > 0) and not name.startswith(PAD_PREFIX)
 
 
 def _is_axis_permutation(rot: np.ndarray) -> bool:
@@ -127,7 +130,7 @@ def _scene_geoms(m: mujoco.MjModel, closed: bool, height: float):
         size = m.geom_size[i].copy()
         aabb = _world_aabb(t, pos, rot, size)
         mat = m.geom_matid[i]
-        valid = _visible(m, i) and not name.startswith("pad_")
+        valid = seen(m, i)
         cls = class_of_name(name) if valid else 0
         per_geom["aabb"][i] = aabb
         per_geom["rgb"][i] = m.mat_rgba[mat, :3] if mat >= 0 else m.geom_rgba[i, :3]

@@ -10,7 +10,7 @@ while `reward`, `terminated`, `truncated` and `metrics` describe the step that e
 The world (`WorldArrays`: geometry, occupancy grids, goals, target images) is data:
 `reset` and `step` read it from their `world` argument (the environment's own world
 when omitted), so one compiled step serves every world of the same shapes: training,
-held-out and new-target houses built with `World(..., like=...)`.
+held-out and new-target houses built with the same geom layout (`World(..., layout=...)`).
 
 Success (reward 1, `terminated`) depends on the goal kind (`env.goal`):
 - image: the agent stands within `success_distance` of where the target image was taken
@@ -52,7 +52,7 @@ from flax import struct
 
 from a2catvn_jax.config import EnvConfig
 from a2catvn_jax.env import camera, rects, render
-from a2catvn_jax.env.world import SEGMENTATION_COLORS, World, WorldArrays, cam_position, make_scenes, render_poses
+from a2catvn_jax.env.world import SEGMENTATION_COLORS, World, WorldArrays, cam_position, make_scenes
 
 # (forward, left, rotate, tilt) per action; metres and degrees.
 ACTION_SETS = {
@@ -300,7 +300,7 @@ class NavEnv:
         return self.world.arrays if world is None else world
 
     def _render(self, w: WorldArrays, scene, pose) -> render.Frame:
-        return render_poses(w.geometry, self._spec, self.cfg.camera_height, scene, pose)
+        return self.world.render(w, scene, pose)
 
     def _obs(self, w: WorldArrays, frame: render.Frame, info: Info) -> Observation:
         s, g = info.scene, info.goal

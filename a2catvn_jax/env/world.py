@@ -8,6 +8,7 @@ pytree of fixed-shape arrays with a leading scene axis S.
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Optional
 
 import jax
@@ -18,7 +19,7 @@ from flax import struct
 
 from a2catvn_jax.config import EnvConfig
 from a2catvn_jax.env import geometry as geometry_lib
-from a2catvn_jax.env import navgrid, rects, render
+from a2catvn_jax.env import mjx_render, navgrid, rects, render
 from a2catvn_jax.env.scenes import generate, mjcf
 from a2catvn_jax.env.scenes.errors import SceneError
 from a2catvn_jax.env.scenes.mjcf import geom_aabb
@@ -40,6 +41,7 @@ class WorldArrays:
     goal_success [S, T, H, W] cells inside the goal region; goal_min_dist [S, T]
     smallest distance of a free cell outside the region (start fallback);
     target_pose [S, T, 4] (x, y, yaw, tilt) of the target image's camera and
+    mjx: the scenes' own MuJoCo geom arrays, which the `mjx` render backend renders.
     target_scene [S, T] the scene it was taken in; target_rgb [S, T, h, w, 3],
     target_depth [S, T, h, w], target_seg [S, T, h, w] (class ids).
     goal_classes [S, T, C] and goal_geoms [S, T, G + 1]: the semantic classes and the
@@ -51,6 +53,7 @@ class WorldArrays:
     """
 
     geometry: geometry_lib.Geometry
+    mjx: mjx_render.MjxFields
     obstacles: jnp.ndarray
     grid_origin: jnp.ndarray
     free: jnp.ndarray
@@ -88,6 +91,9 @@ class WorldArrays:
         return jax.tree_util.tree_map_with_path(pad, self, other)
 
 
+# env.render.backend "auto": frames/s of each backend, per device kind, camera, batch size and layout.
+_AUTO_CHOICES: dict[tuple, dict[str, float]] = {}
+
 # Fill values of padded entries (by field name; the rest are 0 / False): geoms with id -1
 # are never hit, obstacles lie far away, padded cells are unreachable.
 _PAD_FILL = {"gid": -1, "obstacles": 1e6, "goal_dist": np.inf, "oracle_dist": np.inf}
@@ -118,15 +124,21 @@ def make_scenes(cfg: EnvConfig, seed_offset: int = 0) -> list[Scene]:
 
 
 class World:
-    """S scenes with everything the environment needs (built once, on the host)."""
+    """S scenes with everything the environment needs (built once, on the host).
 
-    def __init__(self, cfg: EnvConfig, scenes: list[Scene], seed: int = 0):
+    `layout` (geom count per type, `mjcf.layout_of`) pads the scenes' models to a
+    layout shared with other worlds (e.g. held-out houses), so that one compiled
+    environment and one `mjx` render context serve all of them. `render` draws frames
+    with the configured backend (`env.render.backend`; `backend` is the one in use)."""
+
+    def __init__(self, cfg: EnvConfig, scenes: list[Scene], seed: int = 0, layout: Optional[dict] = None):
         self.cfg = cfg
         self.scenes = scenes
-        self.layout = mjcf.layout_of(scenes)
+        self.layout = mjcf.layout_of(scenes) if layout is None else layout
         self.mjcf = [mjcf.scene_to_mjcf(s, self.layout, fovy=cfg.render.fovy) for s in scenes]
         self.models = [mjcf.compile_scene(x) for x in self.mjcf]
         geometry = geometry_lib.pack(self.models, [s.closed for s in scenes], [s.height for s in scenes])
+        fields = mjx_render.fields_of(self.models)
         body = cfg.camera_height + BODY_MARGIN
         self.grids = [navgrid.build(s, cfg.grid_resolution, cfg.agent_radius, body) for s in scenes]
         self.spec = render.CameraSpec(
@@ -135,9 +147,62 @@ class World:
             cfg.render.fovy,
             candidates=cfg.render.column_candidates if cfg.render.culling else 0,
         )
+        self._mjx = None
+        self.backend, self.backend_note = self._choose_backend(cfg.render.backend, geometry, fields)
         rng = np.random.default_rng(seed)
         self.goals = [self._goals(k, rng) for k in range(len(scenes))]
-        self.arrays = self._arrays(geometry)
+        self.arrays = self._arrays(geometry, fields)
+
+    # -- rendering --------------------------------------------------------------------
+
+    def render(self, arrays: "WorldArrays", scene, pose) -> render.Frame:
+        """Frames [N] seen from agent poses [N, 4] (x, y, yaw, tilt) in scenes [N] of
+        `arrays` (this world's, or another's of the same layout), with this world's backend."""
+        return self._render(arrays.geometry, arrays.mjx, scene, pose)
+
+    def _render(self, geometry, fields, scene, pose) -> render.Frame:
+        if self.backend == "mjx":
+            return self._mjx.render(fields, geometry.cls, scene, cam_position(pose, self.cfg.camera_height),
+                                    pose[:, 2], pose[:, 3])
+        return render_poses(geometry, self.spec, self.cfg.camera_height, scene, pose)
+
+    def _choose_backend(self, backend: str, geometry, fields) -> tuple[str, str]:
+        """(backend in use, a line saying why when `backend` is "auto")."""
+        if backend == "raycast":
+            return backend, ""
+        if backend == "mjx" or mjx_render.available():
+            self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
+        if backend == "mjx":
+            return backend, ""
+        if self._mjx is None:
+            return "raycast", "env.render.backend auto: raycast (mjx.render needs the warp-lang package)"
+        key = (jax.default_backend(), self.spec, self.cfg.num_envs, tuple(sorted(self.layout.items())))
+        if key not in _AUTO_CHOICES:
+            _AUTO_CHOICES[key] = self._measure_backends(geometry, fields)
+        rates = _AUTO_CHOICES[key]
+        best = max(rates, key=rates.get)
+        return best, (f"env.render.backend auto: {best} ("
+                      + ", ".join(f"{b} {r:,.0f} frames/s" for b, r in rates.items())
+                      + f" at {self.cfg.num_envs} frames a batch on {jax.default_backend()})")
+
+    def _measure_backends(self, geometry, fields, repeats: int = 3) -> dict[str, float]:
+        """Frames/s of each backend rendering B = env.num_envs random poses (best of `repeats`)."""
+        n = self.cfg.num_envs
+        rng = np.random.default_rng(0)
+        scene = jnp.asarray(np.arange(n) % len(self.scenes), jnp.int32)
+        pose = jnp.asarray(np.stack([self._random_free_pose(int(k), rng) for k in np.asarray(scene)]), jnp.float32)
+        rates = {}
+        for backend in ("raycast", "mjx"):
+            self.backend = backend
+            fn = jax.jit(lambda s, p: self._render(geometry, fields, s, p))
+            jax.block_until_ready(fn(scene, pose))
+            best = np.inf
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn(scene, pose))
+                best = min(best, time.perf_counter() - t0)
+            rates[backend] = n / best
+        return rates
 
     # -- goals ------------------------------------------------------------------------
 
@@ -222,7 +287,7 @@ class World:
 
     # -- arrays ---------------------------------------------------------------------
 
-    def _arrays(self, geometry) -> WorldArrays:
+    def _arrays(self, geometry, fields) -> WorldArrays:
         S, T = len(self.scenes), self.cfg.goals_per_scene
         H = max(g.shape[0] for g in self.grids)
         W = max(g.shape[1] for g in self.grids)
@@ -261,10 +326,11 @@ class World:
             obstacles[k, : len(g.obstacles)] = g.obstacles
         pose = np.array([[g.pose for g in goals] for goals in self.goals], np.float32)
         tscene = np.array([[g.scene for g in goals] for goals in self.goals], np.int32)
-        flat = render_in_chunks(geometry, self.spec, self.cfg.camera_height, tscene.reshape(-1), pose.reshape(-1, 4))
+        flat = render_in_chunks(lambda s, p: self._render(geometry, fields, s, p), tscene.reshape(-1), pose.reshape(-1, 4))
         h = w = self.cfg.render.image_size
         return WorldArrays(
             geometry=geometry,
+            mjx=fields,
             obstacles=jnp.asarray(obstacles),
             grid_origin=jnp.asarray(np.stack([g.origin for g in self.grids]).astype(np.float32)),
             free=jnp.asarray(free),
@@ -336,9 +402,10 @@ def render_poses(geometry, spec: render.CameraSpec, camera_height: float, scene,
     return render.render_batch(geometry, scene, cam_position(pose, camera_height), pose[:, 2], pose[:, 3], spec)
 
 
-def render_in_chunks(geometry, spec: render.CameraSpec, camera_height: float, scene, pose, chunk: int = 64):
-    """`render_poses` of many poses [N, 4] (host loop over chunks of one compiled shape)."""
-    fn = jax.jit(lambda s, p: render_poses(geometry, spec, camera_height, s, p))
+def render_in_chunks(render_fn, scene, pose, chunk: int = 64):
+    """`render_fn(scene [n], pose [n, 4]) -> Frame` of many poses [N, 4] (host loop over
+    chunks of one compiled shape)."""
+    fn = jax.jit(render_fn)
     n = len(scene)
     outs = []
     for i in range(0, n, chunk):

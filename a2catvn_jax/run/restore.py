@@ -19,6 +19,7 @@ import jax
 from a2catvn_jax.agent.networks import Networks, Params, make_networks
 from a2catvn_jax.config import Config, ConfigError, apply_overrides
 from a2catvn_jax.env import NavEnv, World, action_names
+from a2catvn_jax.env.scenes import mjcf
 from a2catvn_jax.env.world import make_scenes, share_shapes
 from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError, config_differences, read_run_config
 
@@ -68,30 +69,37 @@ def check_houses(*houses: str) -> None:
             raise ValueError(f"houses must be one of {HOUSES}, got {h!r}")
 
 
-def make_env(env_cfg, houses: str = "train", scenes: Optional[list] = None) -> NavEnv:
-    """A `NavEnv` in the run's training houses, in held-out houses generated with offset
-    seeds, or in the training houses with new goals ("new-targets"). `scenes`: the
-    training houses when already built (train and new-targets use them)."""
+def _scenes(env_cfg, houses: str, scenes: Optional[list] = None) -> tuple[list, int]:
+    """(scenes, goal seed) of a set of houses; `scenes`: the training houses when built."""
     check_houses(houses)
     if houses == "held-out" and env_cfg.scene.kind == "mjcf":
         raise ValueError("held-out houses need generated scenes; env.scene.kind is 'mjcf' (one fixed file)")
     if houses == "held-out":
-        scenes, seed = make_scenes(env_cfg, HELD_OUT_OFFSET), env_cfg.scene.seed + HELD_OUT_OFFSET
-    else:
-        scenes = scenes if scenes is not None else make_scenes(env_cfg)
-        seed = env_cfg.scene.seed + (NEW_TARGETS_OFFSET if houses == "new-targets" else 0)
-    return NavEnv(env_cfg, world=World(env_cfg, scenes, seed=seed))
+        return make_scenes(env_cfg, HELD_OUT_OFFSET), env_cfg.scene.seed + HELD_OUT_OFFSET
+    scenes = scenes if scenes is not None else make_scenes(env_cfg)
+    return scenes, env_cfg.scene.seed + (NEW_TARGETS_OFFSET if houses == "new-targets" else 0)
+
+
+def make_env(env_cfg, houses: str = "train", scenes: Optional[list] = None, layout: Optional[dict] = None) -> NavEnv:
+    """A `NavEnv` in the run's training houses, in held-out houses generated with offset
+    seeds, or in the training houses with new goals ("new-targets"). `scenes`: the
+    training houses when already built (train and new-targets use them); `layout`: the
+    geom layout to pad the scenes to (`World`)."""
+    scenes, seed = _scenes(env_cfg, houses, scenes)
+    return NavEnv(env_cfg, world=World(env_cfg, scenes, seed=seed, layout=layout))
 
 
 def make_envs(env_cfg, houses=HOUSES) -> dict:
-    """houses -> `NavEnv` of each set, their worlds padded to common shapes
-    (`world.share_shapes`) so that they share compiled functions."""
+    """houses -> `NavEnv` of each set, built with one geom layout and padded to common
+    shapes (`world.share_shapes`) so that they share compiled functions."""
     check_houses(*houses)
-    envs, scenes = {}, None
+    sets, train = {}, None
     for h in houses:
-        envs[h] = make_env(env_cfg, h, scenes)
+        sets[h] = _scenes(env_cfg, h, train)
         if h != "held-out":
-            scenes = envs[h].world.scenes
+            train = sets[h][0]
+    layout = mjcf.layout_of([s for scenes, _ in sets.values() for s in scenes])
+    envs = {h: NavEnv(env_cfg, world=World(env_cfg, scenes, seed=seed, layout=layout)) for h, (scenes, seed) in sets.items()}
     share_shapes([e.world for e in envs.values()])
     return envs
 

@@ -1,0 +1,148 @@
+"""The `mjx` render backend: MuJoCo's own batch ray tracer (`mjx.render`, impl warp).
+
+`mjx.render` traces a BVH of the scene's geoms inside `jax.jit` on CPU and GPU
+(package `warp-lang`). Its render context is built once from one MuJoCo model and
+fixes the number of worlds it renders, so one context is kept per batch size. Every
+world of the batch may be a different scene of the same geom layout: the scene's
+geom sizes, colours and world poses are given per world (`MjxFields`), and the BVH is
+refitted to them before each render, so one context serves a batch of houses, and a
+world passed as data (held-out houses) renders exactly like the environment's own.
+
+The observation is the one the `raycast` backend gives (`render.Frame`): RGB, depth
+along the pixel's ray in metres (MuJoCo reports planar depth; it is converted), the
+geom hit and its semantic class. The hits are MuJoCo's, so depth and geom ids match
+`mujoco.mj_ray` and the `raycast` backend; the colours are MuJoCo's shading (its
+lights and materials), not the `raycast` shader's patterns.
+"""
+
+from __future__ import annotations
+
+import copy
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from a2catvn_jax.env import camera
+from a2catvn_jax.env.geometry import seen
+from a2catvn_jax.env.render import CameraSpec, Frame
+from a2catvn_jax.env.scenes.mjcf import AGENT_CAMERA
+
+_DEPTH_SCALE = 2.0**20  # metres
+
+# Every geom group is rendered: a geom index that is padding in the scene the render
+# context is built from may be a real geom in another scene. Geoms that `mujoco.mj_ray`
+# does not see (padding, alpha 0) are moved out of reach instead (`fields_of`).
+RENDER_GROUPS = tuple(range(mujoco.mjNGROUP))
+_AWAY = (0.0, 0.0, -1e6)  # metres: where unseen geoms are put, shrunk to _AWAY_SIZE
+_AWAY_SIZE = 1e-6
+
+
+class BackendError(ValueError):
+    """The `mjx` backend cannot be used here (missing package, unusable model)."""
+
+
+def available() -> bool:
+    """Whether `mjx.render` can run here (the `warp-lang` package imports)."""
+    try:
+        import warp  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+@struct.dataclass
+class MjxFields:
+    """Per-scene model and pose arrays the `mjx` backend renders, leading axis S.
+
+    geom_size [S, G, 3], geom_rgba [S, G, 4], geom_xpos [S, G, 3] and geom_xmat
+    [S, G, 3, 3]: MuJoCo's own arrays of each scene's compiled model after forward
+    kinematics, with the geoms that `mujoco.mj_ray` does not see (layout padding,
+    alpha 0) shrunk and moved far below the scene. All scenes share one geom layout
+    (count and type of every geom)."""
+
+    geom_size: jnp.ndarray
+    geom_rgba: jnp.ndarray
+    geom_xpos: jnp.ndarray
+    geom_xmat: jnp.ndarray
+
+
+def fields_of(models: list[mujoco.MjModel]) -> MjxFields:
+    """The `MjxFields` of compiled scenes that share one geom layout."""
+    rows = []
+    for m in models:
+        d = mujoco.MjData(m)
+        mujoco.mj_forward(m, d)
+        size, pos = m.geom_size.copy(), d.geom_xpos.copy()
+        unseen = np.array([not seen(m, i) for i in range(m.ngeom)], bool)
+        size[unseen], pos[unseen] = _AWAY_SIZE, _AWAY
+        rows.append((size, m.geom_rgba, pos, d.geom_xmat.reshape(-1, 3, 3)))
+    return MjxFields(*(jnp.asarray(np.stack(col), jnp.float32) for col in zip(*rows)))
+
+
+class MjxRenderer:
+    """Frames from `mjx.render` for a batch of scenes sharing `model`'s geom layout."""
+
+    def __init__(self, model: mujoco.MjModel, spec: CameraSpec):
+        if not available():
+            raise BackendError("env.render.backend 'mjx' needs the warp-lang package (pip install warp-lang)")
+        self.camera = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, AGENT_CAMERA)
+        if self.camera < 0:
+            raise BackendError(f"the model has no camera {AGENT_CAMERA!r} for the mjx backend")
+        model = copy.copy(model)  # the camera takes the spec's field of view (the context precomputes its rays)
+        model.cam_fovy[self.camera] = spec.fovy
+        model.cam_sensorsize[self.camera] = 0.0
+        self.model = model
+        self.spec = spec
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        self._mx = mjx.put_model(model, impl="warp")
+        self._dx = mjx.put_data(model, data, impl="warp")
+        x, y = camera.image_plane(spec.height, spec.width, spec.fovy)
+        # |(1, x, y)|: along-ray distance over planar depth at each pixel (the camera never rolls).
+        self._ray_scale = jnp.asarray(np.sqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2), jnp.float32)
+        self._contexts: dict[int, object] = {}
+
+    def context(self, worlds: int):
+        """The render context for batches of `worlds` frames (made on first use)."""
+        if worlds not in self._contexts:
+            self._contexts[worlds] = mjx.create_render_context(
+                mjm=self.model, nworld=worlds, cam_res=(self.spec.width, self.spec.height),
+                render_rgb=True, render_depth=True, render_seg=True, use_textures=True, use_shadows=False,
+                enabled_geom_groups=list(RENDER_GROUPS),
+                cam_active=[i == self.camera for i in range(self.model.ncam)])
+        return self._contexts[worlds]
+
+    def render(self, fields: MjxFields, geom_class, scene, cam_pos, yaw, tilt) -> Frame:
+        """Frames [N] of cameras at cam_pos [N, 3], yaw/tilt [N] (radians) in scenes [N]
+        of `fields`; `geom_class` [S, G]: the semantic class of each geom."""
+        n = scene.shape[0]
+        rc = self.context(n).pytree()
+        right, up, forward = camera.camera_basis(yaw, tilt)
+        cam_mat = jnp.stack([right, up, -forward], axis=-1)  # MuJoCo cameras look along -z
+
+        def world(s, pos, mat):
+            m = self._mx.replace(geom_size=fields.geom_size[s], geom_rgba=fields.geom_rgba[s])
+            d = self._dx.replace(cam_xpos=self._dx.cam_xpos.at[self.camera].set(pos),
+                                 cam_xmat=self._dx.cam_xmat.at[self.camera].set(mat),
+                                 geom_xpos=fields.geom_xpos[s], geom_xmat=fields.geom_xmat[s])
+            return m, d
+
+        m, d = jax.vmap(world)(scene, cam_pos, cam_mat)
+        d = jax.vmap(mjx.refit_bvh, in_axes=(0, 0, None))(m, d, rc)
+        rgb, depth, seg, _ = jax.vmap(mjx.render_with_segmentation, in_axes=(0, 0, None))(m, d, rc)
+        rgb = jnp.round(mjx.get_rgb(rc, self.camera, rgb) * 255).astype(jnp.uint8)
+        geom = mjx.get_segmentation(rc, self.camera, seg).astype(jnp.int32)
+        # get_depth divides by a scale and clips to [0, 1]; a power of two keeps every value exact.
+        planar = mjx.get_depth(rc, self.camera, depth, _DEPTH_SCALE)[..., 0] * _DEPTH_SCALE
+        hit = geom >= 0
+        s = scene[:, None, None]
+        return Frame(
+            rgb=rgb,
+            depth=jnp.where(hit, planar * self._ray_scale, 0.0),
+            geom=jnp.where(hit, geom, -1),
+            cls=jnp.where(hit, jnp.asarray(geom_class)[s, jnp.maximum(geom, 0)], 0).astype(jnp.int32),
+            fallback=jnp.zeros(n, bool),
+        )
