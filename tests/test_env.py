@@ -1,8 +1,9 @@
 """Tests of the batched navigation environment (`a2catvn_jax.env.NavEnv`).
 
 Everything runs on CPU with tiny configurations (16x16 images, two small scenes, the
-unculled renderer, which compiles fastest). Each environment is built once per module
-and each of its jitted functions is compiled once.
+unculled renderer, which compiles fastest). Every test that renders runs with each
+render backend (`raycast` and `mjx`); each environment is built once per backend and
+each of its jitted functions is compiled once.
 """
 
 from __future__ import annotations
@@ -180,9 +181,15 @@ def _check_no_collisions(env: NavEnv, poses: np.ndarray, require_contact: bool =
 # ------------------------------------------------------------------------ fixtures
 
 
+@pytest.fixture(scope="module", params=["raycast", "mjx"])
+def backend(request):
+    """Every environment test runs with each render backend (`env.render.backend`)."""
+    return request.param
+
+
 @pytest.fixture(scope="module")
-def cfg():
-    return load_config(None, BASE)
+def cfg(backend):
+    return load_config(None, BASE + [f"env.render.backend={backend}"])
 
 
 @pytest.fixture(scope="module")
@@ -223,8 +230,8 @@ def traj_grid(env_grid):
 
 
 @pytest.fixture(scope="module")
-def env_maze():
-    cfg = load_config(None, BASE + ["env.scene.kind=maze", "env.scene.grid=[3,3]"])
+def env_maze(backend):
+    cfg = load_config(None, BASE + ["env.scene.kind=maze", "env.scene.grid=[3,3]", f"env.render.backend={backend}"])
     return NavEnv(cfg.env)
 
 
@@ -251,7 +258,7 @@ def step_exact(env_exact):
 
 
 @pytest.mark.parametrize("which", ["full", "grid", "maze"])
-def test_random_walks_never_enter_obstacles(request, which):
+def test_random_walks_never_enter_obstacles(request, which, backend):
     env = request.getfixturevalue({"full": "env_full", "grid": "env_grid", "maze": "env_maze"}[which])
     traj = request.getfixturevalue(f"traj_{which}")
     rec = traj["rec"]
@@ -506,8 +513,9 @@ def _check_targets(env, state):
 
 
 @pytest.mark.parametrize("goal", ["room", "object"])
-def test_goal_kinds(goal):
-    cfg = load_config(None, BASE + ["env.num_envs=8", f"env.goal={goal}", "env.scene.grid=[2,2]"])
+def test_goal_kinds(goal, backend):
+    cfg = load_config(None, BASE + ["env.num_envs=8", f"env.goal={goal}", "env.scene.grid=[2,2]",
+                                    f"env.render.backend={backend}"])
     env = NavEnv(cfg.env)
     s0, final, rec = _short_run(env, 5)
     assert rec["pose"].shape == (3, 8, 4)
@@ -667,12 +675,13 @@ USER_MJCF = """
 """
 
 
-def test_user_mjcf_scene(tmp_path):
+def test_user_mjcf_scene(tmp_path, backend):
     path = tmp_path / "room.xml"
     path.write_text(USER_MJCF)
     cfg = load_config(
         None,
-        BASE + ["env.num_envs=8", "env.scene.kind=mjcf", f"env.scene.mjcf_path={path}", "env.goal=image"],
+        BASE + ["env.num_envs=8", "env.scene.kind=mjcf", f"env.scene.mjcf_path={path}", "env.goal=image",
+                f"env.render.backend={backend}"],
     )
     env = NavEnv(cfg.env)
     assert env.num_scenes == 1
@@ -687,3 +696,31 @@ def test_user_mjcf_scene(tmp_path):
     assert target_seg.shape == (2, IMG, IMG)
     seg = np.concatenate([np.asarray(s0.obs.segmentation), np.asarray(rec["segmentation"]).reshape(-1, IMG, IMG), target_seg])
     assert (seg == CLASS_ID["table"]).any()
+
+
+# ------------------------------------------------------------- 8. the two backends agree
+
+
+@pytest.mark.parametrize("goal", ["image", "room"])
+def test_backends_give_the_same_episodes(goal):
+    """The same world, seed and actions with `raycast` and with `mjx`: the same poses,
+    rewards and episode ends, depth within 1e-4 m and the same segmentation (room goals
+    end on what the agent sees). Only the colours differ (each backend's shading)."""
+    runs = {}
+    for backend in ("raycast", "mjx"):
+        cfg = load_config(None, BASE + ["env.num_envs=8", f"env.goal={goal}", "env.scene.grid=[2,2]",
+                                        "env.max_episode_steps=15", f"env.render.backend={backend}"])
+        env = NavEnv(cfg.env)
+        assert env.world.backend == backend
+        runs[backend] = (env, *_short_run(env, 7, steps=40))
+    (env_r, s0_r, _, rec_r), (env_m, s0_m, _, rec_m) = runs["raycast"], runs["mjx"]
+    for key in ("pose", "reward", "success", "truncated", "done"):
+        np.testing.assert_array_equal(rec_r[key], rec_m[key], err_msg=key)
+    assert rec_r["done"].any()
+    depth_r, depth_m = np.asarray(rec_r["depth"]), np.asarray(rec_m["depth"])
+    np.testing.assert_allclose(depth_m, depth_r, atol=1e-4)
+    np.testing.assert_array_equal(rec_m["segmentation"], rec_r["segmentation"])
+    for k in ("depth", "segmentation"):
+        np.testing.assert_allclose(np.asarray(env_m.target_images()[k], np.float32),
+                                   np.asarray(env_r.target_images()[k], np.float32), atol=1e-4)
+    assert not np.array_equal(rec_r["rgb"], rec_m["rgb"])
