@@ -79,6 +79,8 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=5, help="env: timed steps per setting")
     parser.add_argument("--gl-frames", type=int, default=200, help="env: frames timed for MuJoCo's renderer")
     parser.add_argument("--no-gl", action="store_true", help="env: skip MuJoCo's OpenGL renderer")
+    parser.add_argument("--backends", nargs="+", choices=["raycast", "mjx"], default=["raycast", "mjx"],
+                        help="env: render backends, side by side")
     parser.add_argument("--max-pixels", type=float, default=3.2e7, help="env: skip settings with more batch*pixels")
     parser.add_argument("--configs", nargs="+", choices=CONFIG_NAMES, default=["quickstart", "paper"],
                         help="train, profile: configurations of configs/")
@@ -238,32 +240,37 @@ def _profile_table(args, overrides) -> list:
 
 
 def _bench_env_table(args, overrides) -> list:
+    """Environment steps (move + render) per second for each resolution, batch size and
+    render backend, in one run on one house at the same poses (the backends step the
+    same episodes), beside MuJoCo's OpenGL renderer on those poses. `cores`: CPU time
+    over wall time while the steps ran (the threads the backend kept busy)."""
     rows = []
     gl_cache = {}
-    header = f"{'batch':>6} {'res':>5} {'geoms':>6} {'env fps':>10} {'compile s':>10} {'GL fps':>8} {'ratio':>7}"
-    print(header)
+    print(f"{'batch':>6} {'res':>5} {'geoms':>6} {'backend':>8} {'env fps':>9} {'cores':>6} {'compile s':>10} "
+          f"{'GL fps':>8} {'/ GL':>6}")
     for res in args.resolutions:
         for batch in args.batch_sizes or [16, 64, 256, 1024]:
             if batch * res * res > args.max_pixels:
                 print(f"{batch:>6} {res:>5}  skipped (batch*pixels > --max-pixels)")
                 continue
-            r = bench_env(batch, res, args.steps, overrides)
-            env = r.pop("env")
-            poses = r.pop("poses")
-            if not args.no_gl and res not in gl_cache:
-                try:
-                    gl_cache[res] = bench_mujoco_gl(env, res, poses, args.gl_frames)
-                except RuntimeError as e:
-                    print(f"# MuJoCo OpenGL renderer unavailable: {e}", file=sys.stderr)
-                    gl_cache[res] = None
-            gl = gl_cache.get(res)
-            r["mujoco_gl_fps"] = gl
-            r["ratio"] = r["frames_per_s"] / gl if gl else None
-            rows.append(r)
-            gl_s = f"{gl:8.0f}" if gl else f"{'-':>8}"
-            ratio_s = f"{r['ratio']:7.2f}" if gl else f"{'-':>7}"
-            print(f"{batch:>6} {res:>5} {r['geoms']:>6} {r['frames_per_s']:10.0f} {r['compile_s']:10.1f} {gl_s} {ratio_s}", flush=True)
-            del env
+            for backend in args.backends:
+                r = bench_env(batch, res, args.steps, [*overrides, f"env.render.backend={backend}"])
+                env = r.pop("env")
+                poses = r.pop("poses")
+                if not args.no_gl and res not in gl_cache:
+                    try:
+                        gl_cache[res] = bench_mujoco_gl(env, res, poses, args.gl_frames)
+                    except RuntimeError as e:
+                        print(f"# MuJoCo OpenGL renderer unavailable: {e}", file=sys.stderr)
+                        gl_cache[res] = None
+                gl = gl_cache.get(res)
+                r.update(backend=backend, mujoco_gl_fps=gl, ratio=r["frames_per_s"] / gl if gl else None)
+                rows.append(r)
+                gl_s = f"{gl:8.0f}" if gl else f"{'-':>8}"
+                ratio_s = f"{r['ratio']:6.2f}" if gl else f"{'-':>6}"
+                print(f"{batch:>6} {res:>5} {r['geoms']:>6} {backend:>8} {r['frames_per_s']:9.0f} {r['cores']:6.2f} "
+                      f"{r['compile_s']:10.1f} {gl_s} {ratio_s}", flush=True)
+                del env
     return rows
 
 

@@ -40,18 +40,19 @@ def bench_env(batch: int, resolution: int, steps: int, overrides=(), world=None)
     state = jax.block_until_ready(step(state, actions[0]))
     compile_s = time.perf_counter() - t0
     poses, fallbacks = [], 0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for k in range(steps):
         state = step(state, actions[k + 1])
         if k < 4:
             poses.append(np.asarray(state.info.pose))
     jax.block_until_ready(state)
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     fallbacks = int(np.asarray(state.metrics["fallback"]).sum())
     return {
         "batch": batch,
         "resolution": resolution,
         "frames_per_s": batch * steps / dt,
+        "cores": cpu / dt,
         "compile_s": compile_s,
         "geoms": int(env.world.models[0].ngeom),
         "fallback_frames_last_step": fallbacks,

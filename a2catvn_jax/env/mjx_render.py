@@ -18,6 +18,7 @@ lights and materials), not the `raycast` shader's patterns.
 from __future__ import annotations
 
 import copy
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -29,6 +30,7 @@ from a2catvn_jax.env import camera
 from a2catvn_jax.env.geometry import seen
 from a2catvn_jax.env.render import CameraSpec, Frame
 from a2catvn_jax.env.scenes.mjcf import AGENT_CAMERA
+from a2catvn_jax.errors import UserError
 
 _DEPTH_SCALE = 2.0**20  # metres
 
@@ -40,7 +42,7 @@ _AWAY = (0.0, 0.0, -1e6)  # metres: where unseen geoms are put, shrunk to _AWAY_
 _AWAY_SIZE = 1e-6
 
 
-class BackendError(ValueError):
+class BackendError(ValueError, UserError):
     """The `mjx` backend cannot be used here (missing package, unusable model)."""
 
 
@@ -88,6 +90,9 @@ class MjxRenderer:
     def __init__(self, model: mujoco.MjModel, spec: CameraSpec):
         if not available():
             raise BackendError("env.render.backend 'mjx' needs the warp-lang package (pip install warp-lang)")
+        import warp
+
+        warp.config.quiet = True  # no banner on stdout when Warp initialises
         self.camera = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, AGENT_CAMERA)
         if self.camera < 0:
             raise BackendError(f"the model has no camera {AGENT_CAMERA!r} for the mjx backend")

@@ -69,7 +69,9 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     grad_norms = make_grad_norms(env, networks, cfg) if cfg.train.grad_norm_every else None
     per_update = frames_per_update(cfg)
     log(f"built {env.num_scenes} scene(s), {env.num_actions} actions, "
-        f"{env.num_envs} environments in {time.perf_counter() - t_build:.1f} s")
+        f"{env.num_envs} environments in {time.perf_counter() - t_build:.1f} s, rendered by {env.world.backend}")
+    if env.world.backend_note:
+        log(env.world.backend_note)
     key = jax.random.PRNGKey(cfg.seed)
     if resume:
         template = jax.eval_shape(init, key)

@@ -1,0 +1,51 @@
+"""`env.render.backend`: what `auto` chooses and why, and the `mjx` backend's errors.
+
+Pixel-for-pixel agreement with `mujoco.mj_ray` is in test_render.py (path "mjx"), and
+the environment's tests run with each backend in test_env.py."""
+
+from __future__ import annotations
+
+import pytest
+
+from a2catvn_jax.config import load_config
+from a2catvn_jax.env import NavEnv
+from a2catvn_jax.env import mjx_render
+from a2catvn_jax.env import world as world_lib
+from a2catvn_jax.errors import UserError
+
+BASE = ["env.num_envs=4", "env.render.image_size=16", "env.render.culling=false", "env.scene.kind=room",
+        "env.scene.num_scenes=1", "env.goals_per_scene=2"]
+
+
+def test_auto_measures_both_backends_and_takes_the_faster(monkeypatch):
+    monkeypatch.setattr(world_lib, "_AUTO_CHOICES", {})
+    env = NavEnv(load_config(None, BASE + ["env.render.backend=auto"]).env)
+    (rates,) = world_lib._AUTO_CHOICES.values()
+    assert set(rates) == {"raycast", "mjx"} and all(r > 0 for r in rates.values())
+    assert env.world.backend == max(rates, key=rates.get)
+    assert env.world.backend_note.startswith(f"env.render.backend auto: {env.world.backend} (")
+    assert "frames/s" in env.world.backend_note
+    # A second world of the same camera, batch and layout reuses the measurement.
+    monkeypatch.setattr(world_lib.World, "_measure_backends", lambda *a, **k: pytest.fail("measured twice"))
+    again = NavEnv(load_config(None, BASE + ["env.render.backend=auto"]).env)
+    assert again.world.backend == env.world.backend
+
+
+@pytest.mark.parametrize("backend", ["auto", "mjx"])
+def test_without_warp(monkeypatch, backend):
+    """Without the warp-lang package, `auto` renders with raycast and says why; `mjx`
+    is a one-line error that names the package."""
+    monkeypatch.setattr(mjx_render, "available", lambda: False)
+    cfg = load_config(None, BASE + [f"env.render.backend={backend}"]).env
+    if backend == "auto":
+        env = NavEnv(cfg)
+        assert env.world.backend == "raycast" and "warp-lang" in env.world.backend_note
+    else:
+        with pytest.raises(UserError, match=r"^env.render.backend 'mjx' needs the warp-lang package") as e:
+            NavEnv(cfg)
+        assert "\n" not in str(e.value)
+
+
+def test_unknown_backend_is_a_config_error():
+    with pytest.raises(UserError, match="env.render.backend"):
+        load_config(None, ["env.render.backend=opengl"])
