@@ -49,3 +49,19 @@ def test_without_warp(monkeypatch, backend):
 def test_unknown_backend_is_a_config_error():
     with pytest.raises(UserError, match="env.render.backend"):
         load_config(None, ["env.render.backend=opengl"])
+
+
+def test_env_benchmark_times_both_backends(tmp_path, capsys):
+    """`benchmark env` runs each backend on the same episodes, one row each."""
+    import json
+
+    from a2catvn_jax import benchmark
+
+    out = tmp_path / "env.json"
+    benchmark.main(["env", "--batch-sizes", "2", "--resolutions", "16", "--steps", "2", "--no-gl", "--json", str(out),
+                    "--set", "env.scene.kind=room", "env.render.culling=false", "env.goals_per_scene=1"])
+    rows = json.loads(out.read_text())
+    assert [r["backend"] for r in rows] == ["raycast", "mjx"]
+    for r in rows:
+        assert r["batch"] == 2 and r["resolution"] == 16 and r["frames_per_s"] > 0 and r["cores"] > 0
+    assert "backend" in capsys.readouterr().out
