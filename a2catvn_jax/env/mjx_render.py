@@ -92,7 +92,7 @@ class MjxRenderer:
             raise BackendError("env.render.backend 'mjx' needs the warp-lang package (pip install warp-lang)")
         import warp
 
-        warp.config.quiet = True  # no banner on stdout when Warp initialises
+        warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)  # no banner on stdout at Warp's start
         self.camera = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, AGENT_CAMERA)
         if self.camera < 0:
             raise BackendError(f"the model has no camera {AGENT_CAMERA!r} for the mjx backend")
