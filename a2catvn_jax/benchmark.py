@@ -60,6 +60,7 @@ from a2catvn_jax import cli
 from a2catvn_jax.bench.profile import matmul_gflops, profile_update
 from a2catvn_jax.bench.throughput import bench_env, bench_mujoco_gl, bench_network, bench_train
 from a2catvn_jax.config import CONFIGS, load_config
+from a2catvn_jax.env import mjx_render
 from a2catvn_jax.run import workers
 
 CONFIG_NAMES = sorted(p.stem for p in CONFIGS.glob("*.yaml") if p.stem != "default")
@@ -246,6 +247,9 @@ def _bench_env_table(args, overrides) -> list:
     over wall time while the steps ran (the threads the backend kept busy)."""
     rows = []
     gl_cache = {}
+    backends = [b for b in args.backends if b != "mjx" or not mjx_render.unavailable()]
+    if backends != args.backends:
+        print(f"# backend mjx left out: {mjx_render.unavailable()}", file=sys.stderr)
     print(f"{'batch':>6} {'res':>5} {'geoms':>6} {'backend':>8} {'env fps':>9} {'cores':>6} {'compile s':>10} "
           f"{'GL fps':>8} {'/ GL':>6}")
     for res in args.resolutions:
@@ -253,7 +257,7 @@ def _bench_env_table(args, overrides) -> list:
             if batch * res * res > args.max_pixels:
                 print(f"{batch:>6} {res:>5}  skipped (batch*pixels > --max-pixels)")
                 continue
-            for backend in args.backends:
+            for backend in backends:
                 r = bench_env(batch, res, args.steps, [*overrides, f"env.render.backend={backend}"])
                 env = r.pop("env")
                 poses = r.pop("poses")

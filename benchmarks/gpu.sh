@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU measurements of docs/benchmarks.md in one script, each step under its own time
-# limit so that the whole stays under about 8 minutes:
+# limit (180 + 200 + 90 s) so that the whole stays under 8 minutes:
 #   1. the environment (move + render, RGB + depth + segmentation) with both render
 #      backends side by side, B 256 .. 8192, at 64 and 84 px;
 #   2. training frames/s and memory of the paper-sized configuration at 32 px,
@@ -16,11 +16,11 @@ mkdir -p "$out"
 python=${PYTHON:-python3}
 export XLA_PYTHON_CLIENT_PREALLOCATE=false  # the benchmark's processes share the device's memory
 if [ "${SMALL:-0}" = 1 ]; then
-  env_sizes="2 4" env_res="16" train_sizes="2 4" profile_b=2 steps=1 limit=600
+  env_sizes="2 4" env_res="16" train_sizes="2 4" profile_b=2 steps=1 limits=(600 600 600)
   tiny=(--set env.scene.kind=room env.render.culling=false agent.conv_channels=[4,8,8,8] agent.dense_size=16
         agent.core_size=16 train.rollout_length=4 train.replay_size=8 train.replay_batch=2)
 else
-  env_sizes="256 1024 4096 8192" env_res="64 84" train_sizes="256 1024 4096" profile_b=1024 steps=5 limit=240
+  env_sizes="256 1024 4096 8192" env_res="64 84" train_sizes="256 1024 4096" profile_b=1024 steps=5 limits=(180 200 90)
   tiny=()
 fi
 "$python" -c "import jax; print(jax.devices())" | tee "$out/device.txt"
@@ -31,9 +31,9 @@ step() {  # step NAME SECONDS COMMAND...: run one step, its output in OUT/NAME.t
   timeout "$seconds" "$@" 2>&1 | grep -v "^Module " | tee "$out/$name.txt"
   echo "== $name: exit status ${PIPESTATUS[0]}"
 }
-step env "$limit" "$python" -m a2catvn_jax.benchmark env --batch-sizes $env_sizes --resolutions $env_res \
+step env "${limits[0]}" "$python" -m a2catvn_jax.benchmark env --batch-sizes $env_sizes --resolutions $env_res \
   --steps "$steps" --no-gl --max-pixels 1e9 --json "$out/env.json" "${tiny[@]}"
-step train "$limit" "$python" -m a2catvn_jax.benchmark train --configs paper --paper-resolution 32 \
+step train "${limits[1]}" "$python" -m a2catvn_jax.benchmark train --configs paper --paper-resolution 32 \
   --batch-sizes $train_sizes --updates "$steps" --json "$out/train.json" "${tiny[@]}"
-step profile "$((limit / 2))" "$python" -m a2catvn_jax.benchmark profile --configs paper --paper-resolution 32 \
+step profile "${limits[2]}" "$python" -m a2catvn_jax.benchmark profile --configs paper --paper-resolution 32 \
   --updates 2 --json "$out/profile.json" --set env.num_envs=$profile_b "${tiny[@]:1}"

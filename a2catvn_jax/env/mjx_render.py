@@ -46,13 +46,16 @@ class BackendError(ValueError, UserError):
     """The `mjx` backend cannot be used here (missing package, unusable model)."""
 
 
-def available() -> bool:
-    """Whether `mjx.render` can run here (the `warp-lang` package imports)."""
+def unavailable() -> str:
+    """Why `mjx.render` cannot run here ("" when it can): the `warp-lang` package is
+    missing or does not import."""
     try:
         import warp  # noqa: F401
-    except Exception:
-        return False
-    return True
+    except ImportError:
+        return "it needs the warp-lang package (pip install warp-lang)"
+    except Exception as e:  # installed but broken
+        return "the warp-lang package does not import: " + " ".join(str(e).split())
+    return ""
 
 
 @struct.dataclass
@@ -88,8 +91,9 @@ class MjxRenderer:
     """Frames from `mjx.render` for a batch of scenes sharing `model`'s geom layout."""
 
     def __init__(self, model: mujoco.MjModel, spec: CameraSpec):
-        if not available():
-            raise BackendError("env.render.backend 'mjx' needs the warp-lang package (pip install warp-lang)")
+        why = unavailable()
+        if why:
+            raise BackendError(f"env.render.backend 'mjx': {why}")
         import warp
 
         warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)  # no banner on stdout at Warp's start
@@ -123,6 +127,10 @@ class MjxRenderer:
     def render(self, fields: MjxFields, geom_class, scene, cam_pos, yaw, tilt) -> Frame:
         """Frames [N] of cameras at cam_pos [N, 3], yaw/tilt [N] (radians) in scenes [N]
         of `fields`; `geom_class` [S, G]: the semantic class of each geom."""
+        if fields.geom_size.shape[-2] != self.model.ngeom:
+            raise BackendError(f"the mjx backend renders worlds of {self.model.ngeom} geoms (its render context's layout); "
+                               f"these arrays have {fields.geom_size.shape[-2]}: build every world with one geom layout "
+                               "(World(..., layout=...))")
         n = scene.shape[0]
         rc = self.context(n).pytree()
         right, up, forward = camera.camera_basis(yaw, tilt)

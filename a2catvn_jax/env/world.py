@@ -8,6 +8,7 @@ pytree of fixed-shape arrays with a leading scene axis S.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Optional
 
@@ -35,13 +36,13 @@ PIECE_GAP = 0.05  # metres: geoms of one class this close to an object goal's ge
 class WorldArrays:
     """Device arrays of a world, leading axis S (scenes), T goals per scene.
 
-    geometry: render geometry. obstacles [S, N, 4] blocking footprints (padding far
+    geometry: render geometry; mjx: the scenes' own MuJoCo geom arrays (what the `mjx`
+    render backend renders). obstacles [S, N, 4] blocking footprints (padding far
     away). grid_origin [S, 2]; free [S, H, W]; diameter [S] (metres).
     goal_dist [S, T, H, W] geodesic distance to the goal region (inf: unreachable);
     goal_success [S, T, H, W] cells inside the goal region; goal_min_dist [S, T]
     smallest distance of a free cell outside the region (start fallback);
     target_pose [S, T, 4] (x, y, yaw, tilt) of the target image's camera and
-    mjx: the scenes' own MuJoCo geom arrays, which the `mjx` render backend renders.
     target_scene [S, T] the scene it was taken in; target_rgb [S, T, h, w, 3],
     target_depth [S, T, h, w], target_seg [S, T, h, w] (class ids).
     goal_classes [S, T, C] and goal_geoms [S, T, G + 1]: the semantic classes and the
@@ -155,32 +156,43 @@ class World:
 
     # -- rendering --------------------------------------------------------------------
 
-    def render(self, arrays: "WorldArrays", scene, pose) -> render.Frame:
+    def render(self, arrays: WorldArrays, scene, pose) -> render.Frame:
         """Frames [N] seen from agent poses [N, 4] (x, y, yaw, tilt) in scenes [N] of
         `arrays` (this world's, or another's of the same layout), with this world's backend."""
-        return self._render(arrays.geometry, arrays.mjx, scene, pose)
+        return self._render(self.backend, arrays.geometry, arrays.mjx, scene, pose)
 
-    def _render(self, geometry, fields, scene, pose) -> render.Frame:
-        if self.backend == "mjx":
+    def _render(self, backend: str, geometry, fields, scene, pose) -> render.Frame:
+        if backend == "mjx":
             return self._mjx.render(fields, geometry.cls, scene, cam_position(pose, self.cfg.camera_height),
                                     pose[:, 2], pose[:, 3])
         return render_poses(geometry, self.spec, self.cfg.camera_height, scene, pose)
 
     def _choose_backend(self, backend: str, geometry, fields) -> tuple[str, str]:
-        """(backend in use, a line saying why when `backend` is "auto")."""
+        """(backend in use, a line saying why when `backend` is "auto"). `auto` is measured
+        in each process (once per device, camera, batch size, scene count and layout)."""
         if backend == "raycast":
             return backend, ""
-        if backend == "mjx" or mjx_render.available():
-            self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
         if backend == "mjx":
+            self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
             return backend, ""
-        if self._mjx is None:
-            return "raycast", "env.render.backend auto: raycast (mjx.render needs the warp-lang package)"
-        key = (jax.default_backend(), self.spec, self.cfg.num_envs, tuple(sorted(self.layout.items())))
+        why = mjx_render.unavailable()
+        if why:
+            return "raycast", f"env.render.backend auto: raycast (the mjx backend cannot run here: {why})"
+        key = (jax.default_backend(), self.spec, self.cfg.camera_height, self.cfg.num_envs, len(self.scenes),
+               tuple(sorted(self.layout.items())))
         if key not in _AUTO_CHOICES:
-            _AUTO_CHOICES[key] = self._measure_backends(geometry, fields)
+            try:
+                self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
+                _AUTO_CHOICES[key] = self._measure_backends(geometry, fields)
+            except Exception as e:  # Warp could not build or run its kernels here: keep the ray caster
+                self._mjx = None
+                return "raycast", f"env.render.backend auto: raycast (the mjx backend failed: {' '.join(str(e).split())})"
         rates = _AUTO_CHOICES[key]
         best = max(rates, key=rates.get)
+        if best == "mjx" and self._mjx is None:
+            self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
+        elif best == "raycast":
+            self._mjx = None  # its render contexts are not kept
         return best, (f"env.render.backend auto: {best} ("
                       + ", ".join(f"{b} {r:,.0f} frames/s" for b, r in rates.items())
                       + f" at {self.cfg.num_envs} frames a batch on {jax.default_backend()})")
@@ -193,8 +205,7 @@ class World:
         pose = jnp.asarray(np.stack([self._random_free_pose(int(k), rng) for k in np.asarray(scene)]), jnp.float32)
         rates = {}
         for backend in ("raycast", "mjx"):
-            self.backend = backend
-            fn = jax.jit(lambda s, p: self._render(geometry, fields, s, p))
+            fn = jax.jit(functools.partial(self._render, backend, geometry, fields))
             jax.block_until_ready(fn(scene, pose))
             best = np.inf
             for _ in range(repeats):
@@ -326,7 +337,8 @@ class World:
             obstacles[k, : len(g.obstacles)] = g.obstacles
         pose = np.array([[g.pose for g in goals] for goals in self.goals], np.float32)
         tscene = np.array([[g.scene for g in goals] for goals in self.goals], np.int32)
-        flat = render_in_chunks(lambda s, p: self._render(geometry, fields, s, p), tscene.reshape(-1), pose.reshape(-1, 4))
+        flat = render_in_chunks(functools.partial(self._render, self.backend, geometry, fields), tscene.reshape(-1),
+                                pose.reshape(-1, 4))
         h = w = self.cfg.render.image_size
         return WorldArrays(
             geometry=geometry,
