@@ -70,17 +70,19 @@ def test_learning_by_sight_experiments():
     assert "(configs/quickstart.yaml;" in ex.listing("/nonexistent", names=["sight"])
 
 
-def test_shared_variants_share_runs_and_seeds_do_not():
+def test_shared_variants_share_runs_and_seeds_do_not(tmp_path):
+    """Run keys alone (an empty store: no run stored under an older key)."""
+    store = tmp_path / "store"
     aux, curriculum = ex.EXPERIMENTS["aux"], ex.EXPERIMENTS["curriculum"]
-    pre, a = ex.plan(aux, "cpu", [0], "/r")[:2]
-    c = ex.plan(curriculum, "cpu", [0], "/r")
+    pre, a = ex.plan(aux, "cpu", [0], "/r", store=store)[:2]
+    c = ex.plan(curriculum, "cpu", [0], "/r", store=store)
     assert c[1].workdir == a.workdir  # the CPU task is configured with its curriculum
     assert c[0].workdir != a.workdir and not c[0].cfg.train.curriculum
-    paper = ex.plan(curriculum, "paper", [0], "/r")
-    assert paper[0].workdir == ex.plan(aux, "paper", [0], "/r")[1].workdir  # the paper-sized one without
+    paper = ex.plan(curriculum, "paper", [0], "/r", store=store)
+    assert paper[0].workdir == ex.plan(aux, "paper", [0], "/r", store=store)[1].workdir  # the paper-sized one without
     assert pre.workdir != a.workdir and pre.cfg == a.cfg  # same config, pre-trained: another run
-    assert ex.plan(ex.EXPERIMENTS["pretraining"], "cpu", [0], "/r")[1].workdir == pre.workdir
-    s0, s1 = ex.plan(aux, "cpu", [0, 1], "/r")[:2]
+    assert ex.plan(ex.EXPERIMENTS["pretraining"], "cpu", [0], "/r", store=store)[1].workdir == pre.workdir
+    s0, s1 = ex.plan(aux, "cpu", [0, 1], "/r", store=store)[:2]
     assert s0.workdir.parent == s1.workdir.parent and s0.workdir != s1.workdir
 
 
