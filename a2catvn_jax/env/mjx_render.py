@@ -155,7 +155,7 @@ class MjxRenderer:
         return Frame(
             rgb=rgb,
             depth=jnp.where(hit, planar * self._ray_scale, 0.0),
-            geom=jnp.where(hit, geom, -1),
+            geom=geom,  # -1 where nothing is hit
             cls=jnp.where(hit, jnp.asarray(geom_class)[s, jnp.maximum(geom, 0)], 0).astype(jnp.int32),
             fallback=jnp.zeros(n, bool),
         )

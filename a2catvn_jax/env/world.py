@@ -92,7 +92,8 @@ class WorldArrays:
         return jax.tree_util.tree_map_with_path(pad, self, other)
 
 
-# env.render.backend "auto": frames/s of each backend, per device kind, camera, batch size and layout.
+# env.render.backend "auto": frames/s of each backend, per device platform, camera, camera height,
+# batch size, scene count and layout (`World._choose_backend`).
 _AUTO_CHOICES: dict[tuple, dict[str, float]] = {}
 
 # Fill values of padded entries (by field name; the rest are 0 / False): geoms with id -1

@@ -80,13 +80,12 @@ def _scenes(env_cfg, houses: str, scenes: Optional[list] = None) -> tuple[list, 
     return scenes, env_cfg.scene.seed + (NEW_TARGETS_OFFSET if houses == "new-targets" else 0)
 
 
-def make_env(env_cfg, houses: str = "train", scenes: Optional[list] = None, layout: Optional[dict] = None) -> NavEnv:
+def make_env(env_cfg, houses: str = "train", scenes: Optional[list] = None) -> NavEnv:
     """A `NavEnv` in the run's training houses, in held-out houses generated with offset
     seeds, or in the training houses with new goals ("new-targets"). `scenes`: the
-    training houses when already built (train and new-targets use them); `layout`: the
-    geom layout to pad the scenes to (`World`)."""
+    training houses when already built (train and new-targets use them)."""
     scenes, seed = _scenes(env_cfg, houses, scenes)
-    return NavEnv(env_cfg, world=World(env_cfg, scenes, seed=seed, layout=layout))
+    return NavEnv(env_cfg, world=World(env_cfg, scenes, seed=seed))
 
 
 def make_envs(env_cfg, houses=HOUSES) -> dict:
