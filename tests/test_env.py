@@ -23,7 +23,7 @@ from a2catvn_jax.config import ConfigError, load_config  # noqa: E402
 from a2catvn_jax.env import ACTION_SETS, NavEnv, State  # noqa: E402
 from a2catvn_jax.env.scenes.mjcf import geom_aabb  # noqa: E402
 from a2catvn_jax.env.scenes.spec import CLASS_ID, STRUCTURAL_CLASSES  # noqa: E402
-from a2catvn_jax.env.world import SEGMENTATION_COLORS  # noqa: E402
+from a2catvn_jax.env.world import SEGMENTATION_COLORS, World  # noqa: E402
 
 B = 32  # agents per batch
 T = 300  # steps per random rollout
@@ -696,6 +696,54 @@ def test_user_mjcf_scene(tmp_path, backend):
     assert target_seg.shape == (2, IMG, IMG)
     seg = np.concatenate([np.asarray(s0.obs.segmentation), np.asarray(rec["segmentation"]).reshape(-1, IMG, IMG), target_seg])
     assert (seg == CLASS_ID["table"]).any()
+
+
+NATIVE_MJCF = """
+<mujoco model="native_room">
+  <asset>
+    <texture name="checker" type="2d" builtin="checker" width="32" height="32" rgb1=".3 .3 .3" rgb2=".8 .8 .8"/>
+    <material name="tiles" texture="checker" texrepeat="3 3"/>
+    <mesh name="chair_mesh" file="chair.obj"/>
+  </asset>
+  <worldbody>
+    <light directional="true" dir="0.2 0.1 -1" diffuse="0.7 0.7 0.7" castshadow="false"/>
+    <geom name="floor" type="plane" size="1.5 1.5 0.1" material="tiles"/>
+    <geom name="wall_n" type="box" pos="0 1.45 1.25" size="1.5 0.05 1.25"/>
+    <geom name="wall_s" type="box" pos="0 -1.45 1.25" size="1.5 0.05 1.25"/>
+    <geom name="wall_e" type="box" pos="1.45 0 1.25" size="0.05 1.4 1.25"/>
+    <geom name="wall_w" type="box" pos="-1.45 0 1.25" size="0.05 1.4 1.25"/>
+    <geom name="table_0" type="cylinder" pos="0.5 0.4 0.4" size="0.35 0.4" rgba="0.2 0.6 0.2 1"/>
+    <geom name="chair_0" type="mesh" mesh="chair_mesh" pos="-0.7 -0.6 0" rgba="0.8 0.2 0.2 1"/>
+  </worldbody>
+</mujoco>
+"""
+# A tetrahedron in Wavefront OBJ, next to the MJCF file that names it.
+CHAIR_OBJ = "v 0 0 0\nv 0.5 0 0\nv 0 0.5 0\nv 0 0 0.7\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+
+
+def test_user_mjcf_with_planes_cylinders_and_meshes(tmp_path):
+    """With the mjx backend a user's scene keeps its own model: a textured plane floor,
+    a cylinder table and a mesh chair (an OBJ file beside the MJCF) render with their
+    classes, object goals find them, and their bounding boxes block the agent. `auto`
+    takes mjx for such a scene and says why."""
+    path = tmp_path / "room.xml"
+    path.write_text(NATIVE_MJCF)
+    (tmp_path / "chair.obj").write_text(CHAIR_OBJ)
+    overrides = BASE + ["env.num_envs=8", "env.scene.kind=mjcf", f"env.scene.mjcf_path={path}", "env.goal=object"]
+    env = NavEnv(load_config(None, overrides + ["env.render.backend=mjx"]).env)
+    assert env.world.backend == "mjx" and env.world.scenes[0].source == ("file", str(path))
+    assert {(g.name, g.native) for g in env.world.scenes[0].geoms if g.native} == {
+        ("floor", "plane"), ("table_0", "cylinder"), ("chair_0", "mesh")}
+    assert "chair_mesh" in env.scene_mjcf(0) and "agent_cam" in env.scene_mjcf(0)
+    s0, final, rec = _short_run(env, 6, steps=20)
+    _check_targets(env, final)
+    poses = _all_poses(s0, rec)
+    _check_no_collisions(env, poses, require_contact=False)
+    seg = np.concatenate([np.asarray(s0.obs.segmentation), np.asarray(rec["segmentation"]).reshape(-1, IMG, IMG),
+                          np.asarray(env.world.arrays.target_seg[0])])
+    assert (seg == CLASS_ID["table"]).any() and (seg == CLASS_ID["chair"]).any() and (seg == CLASS_ID["floor"]).any()
+    auto = World(load_config(None, overrides + ["env.render.backend=auto"]).env, env.world.scenes)
+    assert auto.backend == "mjx" and "only the mjx backend renders" in auto.backend_note
 
 
 # ------------------------------------------------------------- 8. the two backends agree

@@ -21,6 +21,7 @@ from a2catvn_jax.env import camera, navgrid
 from a2catvn_jax.env.geometry import Geometry, pack, take
 from a2catvn_jax.env.mjx_render import MjxRenderer, fields_of
 from a2catvn_jax.env.render import CameraSpec, Frame, render, render_batch
+from a2catvn_jax.env.scenes import mjcf as mjcf_lib
 from a2catvn_jax.env.scenes import (
     AGENT_RADIUS,
     CLASS_ID,
@@ -118,7 +119,7 @@ class Batch:
         )
 
 
-def _make_batch(models, closed, heights, spec, scene, pos, yaw, tilt, **extra) -> Batch:
+def _make_batch(models, closed, heights, spec, scene, pos, yaw, tilt, skip_unsupported=False, **extra) -> Batch:
     scene = np.asarray(scene, np.int32)
     pos = np.asarray(pos, np.float32)
     yaw = np.asarray(yaw, np.float32)
@@ -141,7 +142,7 @@ def _make_batch(models, closed, heights, spec, scene, pos, yaw, tilt, **extra) -
     return Batch(
         models=models,
         datas=datas,
-        geometry=pack(models, closed, heights),
+        geometry=pack(models, closed, heights, skip_unsupported=skip_unsupported),
         spec=spec,
         scene=scene,
         pos=pos,
@@ -486,6 +487,91 @@ def test_segmentation_and_formats(name, path, frames, request):
         # Material colours are the geom's colour.
         table = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "table_0")
         np.testing.assert_allclose(np.asarray(b.geometry.rgb)[0, table], [0.55, 0.35, 0.2], atol=1e-6)
+
+
+# ----------------------------------------------------------------------------------
+# 4b. A user's planes, cylinders, meshes and textures (the mjx backend alone).
+
+NATIVE_XML = """
+<mujoco model="native">
+  <asset>
+    <texture name="checker" type="2d" builtin="checker" width="64" height="64" rgb1=".2 .3 .4" rgb2=".9 .9 .9"/>
+    <material name="tiles" texture="checker" texrepeat="6 4"/>
+    <mesh name="wedge" vertex="0 0 0  0.8 0 0  0 0.6 0  0 0 0.9  0.8 0 0.4"/>
+  </asset>
+  <worldbody>
+    <light name="sun" directional="true" dir="0.2 0.1 -1" diffuse="0.7 0.7 0.7" castshadow="false"/>
+    <geom name="floor" type="plane" size="3 2 0.1" material="tiles"/>
+    <geom name="ceiling" type="plane" size="3 2 0.1" pos="0 0 2.4" quat="0 1 0 0"/>
+    <geom name="wall_0" type="box" size="0.05 2 1.2" pos="3 0 1.2"/>
+    <geom name="wall_1" type="box" size="0.05 2 1.2" pos="-3 0 1.2"/>
+    <geom name="wall_2" type="box" size="3 0.05 1.2" pos="0 2 1.2"/>
+    <geom name="wall_3" type="box" size="3 0.05 1.2" pos="0 -2 1.2"/>
+    <geom name="chair_0" type="mesh" mesh="wedge" pos="1.2 0.6 0" euler="0 0 0.7" rgba="0.8 0.2 0.2 1"/>
+    <geom name="table_0" type="cylinder" size="0.35 0.4" pos="-1.2 1.0 0.4" rgba="0.2 0.6 0.2 1"/>
+    <geom name="plant_0" type="cylinder" size="0.1 0.5" pos="-1.5 -1.2 0.3" euler="1.2 0 0" rgba="0.1 0.5 0.1 1"/>
+    <geom name="sofa_0" type="capsule" size="0.25 0.6" pos="1.0 -1.3 0.3" euler="0 1.5708 0" rgba="0.3 0.3 0.7 1"/>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.fixture(scope="module")
+def native() -> Batch:
+    """NATIVE_XML compiled as the environment compiles a user's scene with plane,
+    cylinder and mesh geoms (its own model plus the agent), cameras looking at its objects."""
+    scene = scene_from_mjcf(NATIVE_XML)
+    assert scene.source == ("xml", NATIVE_XML) and {g.native for g in scene.geoms} == {None, "plane", "cylinder", "mesh"}
+    _, model = mjcf_lib.native_model(scene, FOVY)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    names = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, i) for i in range(model.ngeom)]
+    targets = [data.geom_xpos[i, :2].copy() for i, n in enumerate(names) if n.startswith(("chair", "table", "plant"))]
+    pts = _free_points(scene)
+    rng = np.random.default_rng(2)
+    num = 10
+    pos, yaw, tilt = [], [], []
+    for k in range(num):
+        xy = pts[rng.integers(len(pts))]
+        to = targets[k % len(targets)] - xy
+        pos.append([xy[0], xy[1], CAM_Z])
+        yaw.append(np.arctan2(to[1], to[0]) + rng.uniform(-0.3, 0.3))
+        tilt.append(rng.uniform(-0.5, 0.2))
+    return _make_batch([model], [False], [2.4], SPEC, np.zeros(num), pos, yaw, tilt, skip_unsupported=True)
+
+
+def test_planes_cylinders_meshes_and_textures_with_mjx(native):
+    """With the mjx backend a user's planes (a textured floor), cylinders (one tilted)
+    and meshes give mj_ray's depth and geom at every pixel and their own classes; the
+    ray caster refuses them (one-line errors: tests/test_scene_errors.py)."""
+    b = native
+    render_fn = _mjx_renderer(b.spec, b)  # kept while its frames compute: it holds the render context
+    f = _numpy(render_fn(*b.args()))
+    g = mujoco.mjtGeom
+    hit_types = {int(b.models[0].geom_type[x]) for x in np.unique(b.ref_geom[b.ref_geom >= 0])}
+    assert {int(g.mjGEOM_PLANE), int(g.mjGEOM_CYLINDER), int(g.mjGEOM_MESH)} <= hit_types
+    lines, stats = _compare_with_mujoco(b, f)
+    print(f"\nnative/mjx: max depth error {stats[0]:.3g} m over {stats[3]} hits of {stats[2]} rays "
+          f"({stats[1]} frames), {stats[4]} geom-id ties")
+    assert not lines, f"{len(lines)} pixels disagree with mj_ray:\n" + "\n".join(lines[:20])
+    m, cls_table = b.models[0], np.asarray(b.geometry.cls)[0]
+    for name in ("floor", "chair_0", "table_0", "plant_0"):
+        gid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, name)
+        assert np.any(f.geom == gid), f"no camera sees {name}"
+        assert np.all(f.cls[f.geom == gid] == CLASS_ID[name.split("_")[0]])
+    # The floor's checker texture: its brightness varies several times more than the
+    # same floor's without the texture, seen from the same poses.
+    plain_xml = NATIVE_XML.replace(' material="tiles"', ' rgba="0.55 0.6 0.65 1"')
+    _, plain = mjcf_lib.native_model(scene_from_mjcf(plain_xml), FOVY)
+    plain_fn = _mjx_renderer(b.spec, dataclasses.replace(b, models=[plain]))
+    untextured = _numpy(plain_fn(*b.args()))
+    floor_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "floor")
+    spread = [np.std(frame.rgb[frame.geom == floor_id].astype(float).mean(-1)) for frame in (f, untextured)]
+    assert spread[0] > 3 * spread[1], spread
+    # The ray caster's geometry holds no family member for them.
+    members = np.concatenate([np.asarray(fam.gid).ravel() for fam in b.geometry.families.values()])
+    native_ids = [i for i in range(m.ngeom) if int(m.geom_type[i]) in mjcf_lib.NATIVE_TYPES]
+    assert native_ids and not set(native_ids) & set(members.tolist())
 
 
 # ----------------------------------------------------------------------------------

@@ -1,8 +1,8 @@
 """Unusable MJCF scene files raise `SceneError` with a one-line message, and every
 command line prints that line (`error: ...`) and exits non-zero without a traceback.
 
-The library tests build the scene the way `World` does (read the file, then the
-occupancy grid) and compile nothing. The command-line tests run each module in a
+The library tests build the `World` (read the file, the occupancy grid, the render
+backend), which stops before anything compiles. The command-line tests run each module in a
 subprocess with a tiny configuration; the bad file stops it before anything compiles.
 """
 
@@ -19,7 +19,7 @@ import pytest
 from a2catvn_jax.config import load_config, save_config
 from a2catvn_jax.env import navgrid
 from a2catvn_jax.env.scenes import SceneError
-from a2catvn_jax.env.world import BODY_MARGIN, make_scenes
+from a2catvn_jax.env.world import BODY_MARGIN, World, make_scenes
 from a2catvn_jax.errors import UserError
 from tiny import TINY_LEARNER
 
@@ -49,14 +49,26 @@ def _room(item: str = TABLE, floor: str = FLOOR, asset: str = "") -> str:
 
 # case: (file text, or None for a file that does not exist; what the message must say)
 CASES = {
+    # Cylinders and meshes render with env.render.backend mjx only; the default is raycast.
     "cylinder": (
         _room('<geom name="table_0" type="cylinder" pos="0.5 0.4 0.4" size="0.4 0.4"/>'),
-        r"cylinder\.xml: geom 'table_0' has unsupported type 'cylinder'; supported geom types: box, sphere",
+        r"cylinder\.xml: geom 'table_0' has type cylinder, which only the mjx backend renders: "
+        r"set env\.render\.backend=mjx",
     ),
     "mesh": (
         _room('<geom name="chair_0" type="mesh" mesh="chair_mesh" pos="0.5 0.4 0"/>',
               asset='<asset><mesh name="chair_mesh" file="chair.obj"/></asset>'),
-        r"mesh\.xml: geom 'chair_0' has unsupported type 'mesh'",
+        r"mesh\.xml: geom 'chair_0' has type mesh, which only the mjx backend renders",
+    ),
+    "hfield": (
+        _room('<geom name="rug_0" type="hfield" hfield="bumps" pos="0.5 0.4 0"/>',
+              asset='<asset><hfield name="bumps" nrow="2" ncol="2" size="0.3 0.3 0.02 0.01"/></asset>'),
+        r"hfield\.xml: geom 'rug_0' has unsupported type 'hfield'; supported geom types: box, sphere, capsule, "
+        r"ellipsoid \(both render backends\) and plane, cylinder, mesh \(env\.render\.backend mjx\)",
+    ),
+    "infinite_plane": (
+        _room(floor='<geom name="floor_0" type="plane" size="0 0 1"/>'),
+        r"infinite_plane\.xml: geom 'floor_0' is an infinite plane \(size 0\); give it a finite size",
     ),
     "truncated": (
         _room()[:400],
@@ -117,12 +129,11 @@ def test_the_room_itself_is_usable(scene_dir):
 
 @pytest.mark.parametrize("case", list(CASES))
 def test_library_raises_scene_error(scene_dir, case):
-    """The scene is read and gridded as `World` does; each fault is a one-line SceneError."""
+    """Each fault is a one-line SceneError when the world is built."""
     path = scene_dir / f"{case}.xml"
     cfg = load_config(None, _scene_overrides(path)).env
     with pytest.raises(SceneError, match=CASES[case][1]) as e:
-        for scene in make_scenes(cfg):
-            navgrid.build(scene, cfg.grid_resolution, cfg.agent_radius, cfg.camera_height + BODY_MARGIN)
+        World(cfg, make_scenes(cfg))
     assert "\n" not in str(e.value)
     assert str(e.value).startswith(str(path))
 
@@ -171,6 +182,7 @@ def _command(cli: str, path: Path, folder: Path) -> list[str]:
         ("train", "cylinder"),
         ("train", "missing"),
         ("pretrain", "mesh"),
+        ("train", "hfield"),
         ("evaluate", "freejoint"),
         ("experiments", "small_floor"),
         ("benchmark", "no_floor"),

@@ -366,8 +366,9 @@ def _user(body: str) -> str:
 @pytest.mark.parametrize(
     "xml, pattern",
     [
-        (_user('<geom name="table_1" type="cylinder" size="0.4 0.3"/>'), r"geom 'table_1' has unsupported type 'cylinder'"),
-        (_user('<geom name="floor_2" type="plane" size="2 2 0.1"/>'), r"geom 'floor_2' has unsupported type 'plane'"),
+        (_user('<geom name="rug_1" type="hfield" hfield="h"/>').replace("<worldbody>", '<asset><hfield name="h" nrow="2" ncol="2" size="1 1 0.1 0.1"/></asset><worldbody>'),
+         r"geom 'rug_1' has unsupported type 'hfield'"),
+        (_user('<geom name="floor_2" type="plane" size="0 0 0.1"/>'), r"geom 'floor_2' is an infinite plane"),
         (_user('<geom type="box" size="0.4 0.3 0.2"/>'), r"unnamed geom #1 has no name"),
         (_user('<geom name="couch_1" type="box" size="0.4 0.3 0.2"/>'), r"geom 'couch_1' does not name a known semantic class.*valid classes: wall, floor"),
         (_user('<body name="crate"><freejoint/><geom name="object_1" type="box" size=".1 .1 .1"/></body>'), r"geom 'object_1' is not static: its body 'crate' can move"),

@@ -104,8 +104,11 @@ def _is_axis_permutation(rot: np.ndarray) -> bool:
     return bool(np.all(np.isclose(np.abs(rot), np.round(np.abs(rot)), atol=1e-9)))
 
 
-def _scene_geoms(m: mujoco.MjModel, closed: bool, height: float):
-    """Per-geom arrays and per-family member lists of one compiled scene."""
+def _scene_geoms(m: mujoco.MjModel, closed: bool, height: float, skip_unsupported: bool = False):
+    """Per-geom arrays and per-family member lists of one compiled scene. With
+    `skip_unsupported`, geoms of other types (plane, cylinder, mesh: the `mjx` backend's
+    alone) keep their class, colour and box but join no family: the ray caster does not
+    see them."""
     d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
     G = m.ngeom
@@ -120,6 +123,12 @@ def _scene_geoms(m: mujoco.MjModel, closed: bool, height: float):
     for i in range(G):
         t = int(m.geom_type[i])
         name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, i) or ""
+        if t not in (_BOX, _SPHERE, _CAPSULE, _ELLIPSOID) and skip_unsupported:
+            valid = seen(m, i)
+            mat = m.geom_matid[i]
+            per_geom["rgb"][i] = m.mat_rgba[mat, :3] if mat >= 0 else m.geom_rgba[i, :3]
+            per_geom["cls"][i] = class_of_name(name) if valid else 0
+            continue
         if t not in (_BOX, _SPHERE, _CAPSULE, _ELLIPSOID):
             raise ValueError(
                 f"geom {name or i!r} has type {mujoco.mjtGeom(t).name}; the renderer "
@@ -172,8 +181,11 @@ def _pad_family(items: list, n: int) -> dict[str, np.ndarray]:
     return out
 
 
-def pack(models: list[mujoco.MjModel], closed: list[bool], heights: list[float]) -> Geometry:
+def pack(models: list[mujoco.MjModel], closed: list[bool], heights: list[float],
+         skip_unsupported: bool = False) -> Geometry:
     """Stack scenes sharing one geom layout into a batched `Geometry` (leading axis S).
+    Geoms of types the ray caster cannot render are an error, or with `skip_unsupported`
+    left out of its families (they keep their class, for the `mjx` backend).
 
     A family's size is the largest count over the scenes; shorter ones are padded with
     invalid entries, so scenes may split their boxes differently between families.
@@ -185,7 +197,7 @@ def pack(models: list[mujoco.MjModel], closed: list[bool], heights: list[float])
                 f"scene {k} has a different geom layout from scene 0; scenes batched "
                 "together must share one (pad them with scenes.mjcf.layout_of)"
             )
-    scenes = [_scene_geoms(m, c, h) for m, c, h in zip(models, closed, heights)]
+    scenes = [_scene_geoms(m, c, h, skip_unsupported) for m, c, h in zip(models, closed, heights)]
 
     def f32(a):
         return jnp.asarray(a.astype(np.float32) if a.dtype == np.float64 else a)

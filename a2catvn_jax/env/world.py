@@ -137,9 +137,20 @@ class World:
         self.cfg = cfg
         self.scenes = scenes
         self.layout = mjcf.layout_of(scenes) if layout is None else layout
-        self.mjcf = [mjcf.scene_to_mjcf(s, self.layout, fovy=cfg.render.fovy) for s in scenes]
-        self.models = [mjcf.compile_scene(x) for x in self.mjcf]
-        geometry = geometry_lib.pack(self.models, [s.closed for s in scenes], [s.height for s in scenes])
+        # Geoms only the mjx backend renders (a user's planes, cylinders, meshes): their
+        # scene is compiled from its own MJCF, as it is.
+        self.native = [(g.name, g.native) for s in scenes for g in s.geoms if g.native]
+        if any(s.source is not None for s in scenes):
+            if len(scenes) > 1:
+                raise SceneError(f"scene {next(s.name for s in scenes if s.source)!r} has plane, cylinder or mesh geoms "
+                                 "and is compiled from its own MJCF; it cannot share a batch with other scenes")
+            xml, model = mjcf.native_model(scenes[0], cfg.render.fovy)
+            self.mjcf, self.models = [xml], [model]
+        else:
+            self.mjcf = [mjcf.scene_to_mjcf(s, self.layout, fovy=cfg.render.fovy) for s in scenes]
+            self.models = [mjcf.compile_scene(x) for x in self.mjcf]
+        geometry = geometry_lib.pack(self.models, [s.closed for s in scenes], [s.height for s in scenes],
+                                     skip_unsupported=bool(self.native))
         fields = mjx_render.fields_of(self.models)
         body = cfg.camera_height + BODY_MARGIN
         self.grids = [navgrid.build(s, cfg.grid_resolution, cfg.agent_radius, body) for s in scenes]
@@ -171,6 +182,16 @@ class World:
     def _choose_backend(self, backend: str, geometry, fields) -> tuple[str, str]:
         """(backend in use, a line saying why when `backend` is "auto"). `auto` is measured
         in each process (once per device, camera, batch size, scene count and layout)."""
+        if self.native:
+            name, kind = self.native[0]
+            what = f"{self.scenes[0].name}: geom {name!r} has type {kind}, which only the mjx backend renders"
+            if backend == "raycast":
+                raise SceneError(f"{what}: set env.render.backend=mjx (or auto)")
+            why = mjx_render.unavailable()
+            if why:
+                raise SceneError(f"{what}, and the mjx backend cannot run here: {why}")
+            self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
+            return "mjx", "" if backend == "mjx" else f"env.render.backend auto: mjx ({what})"
         if backend == "raycast":
             return backend, ""
         if backend == "mjx":

@@ -37,6 +37,12 @@ _MJ_TYPE = {
     "ellipsoid": int(mujoco.mjtGeom.mjGEOM_ELLIPSOID),
 }
 _TYPE_OF_MJ = {v: k for k, v in _MJ_TYPE.items()}
+# Geom types of a user's MJCF that only the `mjx` backend renders (`Geom.native`).
+NATIVE_TYPES = {
+    int(mujoco.mjtGeom.mjGEOM_PLANE): "plane",
+    int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder",
+    int(mujoco.mjtGeom.mjGEOM_MESH): "mesh",
+}
 _PAD_SIZE = {"box": "0.01 0.01 0.01", "sphere": "0.01", "capsule": "0.01 0.01", "ellipsoid": "0.01 0.01 0.01"}
 
 
@@ -211,14 +217,16 @@ def scene_from_mjcf(xml: str, name: str = "user") -> Scene:
     """A Scene from a user's MJCF.
 
     Every visible geom must be static (in the world body or a body welded to it),
-    of type box/sphere/capsule/ellipsoid, and named after its semantic class
+    of type box/sphere/capsule/ellipsoid (or plane/cylinder/mesh, which only the
+    `mjx` backend renders: the scene then keeps its source and is compiled from it
+    as it is, `native_model`), and named after its semantic class
     ("<class>", "<class>_<anything>" or "<class>/<anything>"). Padding geoms ("pad_"
     names) and invisible geoms (alpha 0, no material) are skipped. At least one geom
     must be of class floor. bounds: xy union of the floor geoms' boxes; height: lowest
     ceiling bottom if there is a ceiling, else highest geom top. The result has no
     rooms and closed=False. Raises `SceneError` saying which geom is at fault and why.
     """
-    return _scene_of_model(compile_scene(xml), name, where="")
+    return _scene_of_model(compile_scene(xml), name, where="", source=("xml", xml))
 
 
 def scene_from_mjcf_file(path: str | os.PathLike, name: Optional[str] = None) -> Scene:
@@ -237,11 +245,25 @@ def scene_from_mjcf_file(path: str | os.PathLike, name: Optional[str] = None) ->
         model = mujoco.MjModel.from_xml_path(path)
     except Exception as e:  # mujoco raises ValueError with the parser/compiler message
         raise SceneError(f"{path}: MJCF does not compile: {_one_line(e)}") from e
-    return _scene_of_model(model, path if name is None else name, where=f"{path}: ")
+    return _scene_of_model(model, path if name is None else name, where=f"{path}: ", source=("file", os.path.abspath(path)))
 
 
-def _scene_of_model(m: mujoco.MjModel, name: str, where: str) -> Scene:
-    """The Scene of a compiled user model; `where` starts every error message."""
+def _native_box(m: mujoco.MjModel, d: mujoco.MjData, i: int, where: str, label: str) -> tuple[np.ndarray, np.ndarray]:
+    """(centre, half-sizes) of the world bounding box of a plane, cylinder or mesh geom."""
+    rot = d.geom_xmat[i].reshape(3, 3)
+    if int(m.geom_type[i]) == int(mujoco.mjtGeom.mjGEOM_PLANE):
+        if m.geom_size[i][0] <= 0 or m.geom_size[i][1] <= 0:
+            raise SceneError(f"{where}{label} is an infinite plane (size 0); give it a finite size "
+                             "(half-lengths along x and y), the scene's extent")
+        centre, half = np.zeros(3), np.array([m.geom_size[i][0], m.geom_size[i][1], 0.0])
+    else:
+        centre, half = m.geom_aabb[i][:3], m.geom_aabb[i][3:]
+    return d.geom_xpos[i] + rot @ centre, np.abs(rot) @ half
+
+
+def _scene_of_model(m: mujoco.MjModel, name: str, where: str, source: Optional[tuple[str, str]] = None) -> Scene:
+    """The Scene of a compiled user model; `where` starts every error message. A scene
+    with plane, cylinder or mesh geoms keeps `source` (its model is compiled from it)."""
     d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
     geoms: list[Geom] = []
@@ -263,11 +285,11 @@ def _scene_of_model(m: mujoco.MjModel, name: str, where: str) -> Scene:
                 "(in the world body or a body welded to it)"
             )
         gtype = int(m.geom_type[i])
-        if gtype not in _TYPE_OF_MJ:
+        if gtype not in _TYPE_OF_MJ and gtype not in NATIVE_TYPES:
             raise SceneError(
                 f"{where}{label} has unsupported type {_type_name(gtype)!r}; supported geom types: "
-                f"{', '.join(GEOM_TYPES)} (use a thin box instead of a plane, a capsule or box "
-                "instead of a cylinder, primitives instead of meshes)"
+                f"{', '.join(GEOM_TYPES)} (both render backends) and {', '.join(NATIVE_TYPES.values())} "
+                "(env.render.backend mjx)"
             )
         if not gname:
             raise SceneError(
@@ -280,6 +302,11 @@ def _scene_of_model(m: mujoco.MjModel, name: str, where: str) -> Scene:
                 f"{where}{label} does not name a known semantic class (its name must be '<class>', "
                 f"'<class>_...' or '<class>/...'); valid classes: {', '.join(GEOM_CLASSES)}"
             )
+        if gtype in NATIVE_TYPES:
+            centre, half = _native_box(m, d, i, where, label)
+            geoms.append(Geom(type="box", pos=centre, size=half, rgba=rgba, cls=cls, name=gname,
+                              native=NATIVE_TYPES[gtype]))
+            continue
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, d.geom_xmat[i])
         if quat[0] < 0:
@@ -307,19 +334,44 @@ def _scene_of_model(m: mujoco.MjModel, name: str, where: str) -> Scene:
     bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
     ceilings = [geom_aabb(g)[0][2] for g in geoms if g.cls == "ceiling"]
     height = float(min(ceilings)) if ceilings else float(max(geom_aabb(g)[1][2] for g in geoms))
-    return Scene(name=name, geoms=geoms, rooms=[], bounds=bounds, height=height, closed=False)
+    native = source if any(g.native for g in geoms) else None
+    return Scene(name=name, geoms=geoms, rooms=[], bounds=bounds, height=height, closed=False, source=native)
+
+
+def native_model(scene: Scene, fovy: float) -> tuple[str, mujoco.MjModel]:
+    """(MJCF text, compiled model) of a scene with a `source`: the user's model as it is,
+    with the mocap body "agent" and its camera "agent_cam" added (as `scene_to_mjcf`
+    adds them). Meshes and textures resolve relative to the source file."""
+    kind, value = scene.source
+    where = f"{value}: " if kind == "file" else ""
+    try:
+        spec = mujoco.MjSpec.from_file(value) if kind == "file" else mujoco.MjSpec.from_string(value)
+        if spec.body(AGENT_BODY) is not None or spec.camera(AGENT_CAMERA) is not None:
+            raise SceneError(f"{where}the MJCF already has a body {AGENT_BODY!r} or a camera {AGENT_CAMERA!r}; "
+                             "the environment adds its agent under those names: rename them")
+        body = spec.worldbody.add_body(name=AGENT_BODY, mocap=True)
+        # Looking along the body's +x axis with +z up (xyaxes "0 -1 0 0 0 1").
+        body.add_camera(name=AGENT_CAMERA, fovy=float(fovy), quat=[-0.5, -0.5, 0.5, 0.5])
+        model = spec.compile()
+    except SceneError:
+        raise
+    except Exception as e:  # mujoco raises ValueError with the parser/compiler message
+        raise SceneError(f"{where}MJCF does not compile: {_one_line(e)}") from e
+    return spec.to_xml(), model
 
 
 __all__ = [
     "AGENT_BODY",
     "AGENT_CAMERA",
     "GEOM_CLASSES",
+    "NATIVE_TYPES",
     "PAD_PREFIX",
     "class_from_name",
     "compile_scene",
     "geom_aabb",
     "geom_counts",
     "layout_of",
+    "native_model",
     "ordered_geoms",
     "scene_from_mjcf",
     "scene_from_mjcf_file",

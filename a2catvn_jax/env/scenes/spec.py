@@ -127,6 +127,10 @@ class Geom:
     quat: np.ndarray = dataclasses.field(default_factory=lambda: np.array([1.0, 0, 0, 0]))
     room: int = -1
     name: Optional[str] = None
+    # The MuJoCo type of a user's geom that only the `mjx` backend renders (mesh,
+    # cylinder, plane); the geom is then its world bounding box (`type` box), which is
+    # what the occupancy grid and the goals use, and the scene keeps its own model.
+    native: Optional[str] = None
 
     def __post_init__(self):
         if self.type not in GEOM_TYPES:
@@ -161,6 +165,10 @@ class Scene:
     closed: True when floor and ceiling cover the whole footprint and every geom of
       class wall spans floor to ceiling; the renderer then uses walls as exact 2D
       occluders. Generated houses are closed; user scenes are not assumed to be.
+    source: a user's MJCF ("file", path) or ("xml", text) that the scene's model is
+      compiled from as it is (with the agent added), for scenes with geoms of a type
+      only the `mjx` backend renders (`Geom.native`); None: the model is written from
+      `geoms` (`mjcf.scene_to_mjcf`).
     """
 
     name: str
@@ -169,3 +177,4 @@ class Scene:
     bounds: tuple[float, float, float, float]
     height: float
     closed: bool = False
+    source: Optional[tuple[str, str]] = None
