@@ -21,7 +21,6 @@ from a2catvn_jax.env import camera, navgrid
 from a2catvn_jax.env.geometry import Geometry, pack, take
 from a2catvn_jax.env.mjx_render import MjxRenderer, fields_of
 from a2catvn_jax.env.render import CameraSpec, Frame, render, render_batch
-from a2catvn_jax.env.scenes import mjcf as mjcf_lib
 from a2catvn_jax.env.scenes import (
     AGENT_RADIUS,
     CLASS_ID,
@@ -34,6 +33,7 @@ from a2catvn_jax.env.scenes import (
     scene_from_mjcf,
     scene_to_mjcf,
 )
+from a2catvn_jax.env.scenes import mjcf as mjcf_lib
 
 H, W, FOVY = 24, 32, 60.0  # non-square: exercises the horizontal field of view
 SPEC = CameraSpec(H, W, FOVY, tile_columns=4)
@@ -558,6 +558,7 @@ def test_planes_cylinders_meshes_and_textures_with_mjx(native):
     for name in ("floor", "chair_0", "table_0", "plant_0"):
         gid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, name)
         assert np.any(f.geom == gid), f"no camera sees {name}"
+        assert cls_table[gid] == CLASS_ID[name.split("_")[0]]
         assert np.all(f.cls[f.geom == gid] == CLASS_ID[name.split("_")[0]])
     # The floor's checker texture: its brightness varies several times more than the
     # same floor's without the texture, seen from the same poses.
