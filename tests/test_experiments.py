@@ -15,6 +15,7 @@ import pytest
 from scipy import stats
 
 from a2catvn_jax import experiments as cli
+from a2catvn_jax.config import load_config, save_config
 from a2catvn_jax.run import experiments as ex
 from tiny import TINY_LEARNER
 
@@ -346,6 +347,29 @@ def test_a_run_stored_before_new_configuration_keys_is_found(trained, from_store
     assert not s1.is_stored() and s1.stored == primary[1].stored
     seeds = ex.stored_seeds(exp, "cpu", store, TINY)["a"]
     assert 0 in seeds and 1 not in seeds
+
+
+def test_a_run_in_progress_under_an_older_key_resumes_there(tmp_path):
+    """A work directory with a checkpoint and the same configuration under another key
+    (started before a configuration key was added) is where the unstored run goes on;
+    without a checkpoint, or with another configuration, it is not."""
+    store, root = tmp_path / "store", tmp_path / "runs"
+    exp = tiny((ex.Variant("a"),))
+    primary = ex.plan(exp, "cpu", [0, 1], root, TINY, store)
+    assert not primary[0].is_stored()
+    for run in primary:
+        old = run.workdir.parent.with_name("0000bbbb") / run.workdir.name
+        (old / "checkpoints" / "3").mkdir(parents=True)
+        (old / "variant.json").write_text(json.dumps({"label": "a", "overrides": [], "pretrain": False}))
+        other = ["train.learning_rate=0.0123"] if run.seed == 1 else []
+        save_config(load_config(exp.config_path("cpu"), [*TINY, f"seed={run.seed}", *other]), old / "config.yaml")
+    s0, s1 = ex.plan(exp, "cpu", [0, 1], root, TINY, store)
+    assert s0.workdir == primary[0].workdir.parent.with_name("0000bbbb") / "seed_0"
+    assert s0.stored == store / s0.relative and s0.relative.split("/")[2] == "0000bbbb"
+    assert s1.workdir == primary[1].workdir  # another configuration: not resumed
+    # A checkpoint under the run's own key wins.
+    (primary[0].workdir / "checkpoints" / "5").mkdir(parents=True)
+    assert ex.plan(exp, "cpu", [0], root, TINY, store)[0].workdir == primary[0].workdir
 
 
 def test_train_only_some_variants(trained, from_store, monkeypatch):

@@ -270,11 +270,24 @@ def _stored_dir(base: Path, key: str, seed: int, cfg, pretrain: bool) -> Path:
     return primary
 
 
+def _unfinished_dir(base: Path, key: str, seed: int, cfg, pretrain: bool) -> Optional[Path]:
+    """The work directory (`base`: ROOT/SCALE/CONFIG) of a run in progress under another
+    key with the same configuration and at least one checkpoint, when BASE/KEY/seed_N has
+    none: a run started before keys were added to the configuration resumes there."""
+    if _saved_updates(base / key / f"seed_{seed}"):
+        return None
+    for other in sorted(base.glob(f"*/seed_{seed}")):
+        if other.parent.name not in (key, BASELINE_DIR) and _same_run(other, cfg, pretrain) and _saved_updates(other):
+            return other
+    return None
+
+
 def plan(exp: Experiment, scale: str, seeds: Sequence[int], root=DEFAULT_ROOT, overrides: Sequence[str] = (),
          store=DEFAULT_STORE) -> list[Run]:
     """The runs of `exp`: every variant with every seed, configurations checked. A run is
     named ROOT|STORE/SCALE/CONFIG/RUN_KEY/seed_N, or by the stored run of the same
-    configuration under an older key."""
+    configuration under an older key, or (not stored yet) by the work directory of the
+    same configuration in progress under an older key."""
     path = exp.config_path(scale)
     base = Path(store) / scale / exp.config
     runs = []
@@ -283,6 +296,10 @@ def plan(exp: Experiment, scale: str, seeds: Sequence[int], root=DEFAULT_ROOT, o
         for seed in seeds:
             cfg = load_config(path, [*overrides, *variant.overrides, f"seed={seed}"])
             stored = _stored_dir(base, key, seed, cfg, variant.pretrain)
+            if not (stored / DONE).is_file():
+                unfinished = _unfinished_dir(Path(root) / scale / exp.config, key, seed, cfg, variant.pretrain)
+                if unfinished is not None:
+                    stored = base / unfinished.relative_to(Path(root) / scale / exp.config)
             runs.append(Run(variant, seed, cfg, Path(root) / stored.relative_to(store), stored))
     return runs
 
