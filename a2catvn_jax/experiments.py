@@ -13,7 +13,7 @@ Experiments (`EXPERIMENTS`):
   memory          LSTM vs frame stack (mazes, UNREAL auxiliary tasks)
   pretraining     with vs without supervised pre-training
   curriculum      with vs without the complexity curriculum
-  generalisation  room-type goals over 16 houses, A2CAT-VN and blind; held-out houses and new targets
+  generalisation  room-type goals over 64 houses (16 at paper scale), A2CAT-VN and blind; held-out houses and new targets
   clipping        A2CAT-VN with the gradient-norm clip of Table I (0.5) vs 40, and A2C
   grid            the grid action set on small rooms (A2CAT-VN vs A2C)
 

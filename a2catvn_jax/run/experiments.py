@@ -183,7 +183,7 @@ EXPERIMENTS = {e.name: e for e in (
               "the paper reports no ablation of it.",
     ),
     Experiment(
-        "generalisation", "room-type goals in 16 houses: training vs held-out houses", "house_rooms",
+        "generalisation", "room-type goals over many houses (64 at CPU scale, a new one each episode; 16 at paper scale): training vs held-out houses", "house_rooms",
         (Variant("A2CAT-VN"), Variant("blind A2CAT-VN", BLIND)),
         paper="The paper leaves generalisation to unseen houses and unseen targets as future work.",
     ),
