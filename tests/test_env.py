@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from a2catvn_jax.config import ConfigError, load_config  # noqa: E402
 from a2catvn_jax.env import ACTION_SETS, NavEnv, State  # noqa: E402
-from a2catvn_jax.env.scenes.mjcf import geom_aabb  # noqa: E402
+from a2catvn_jax.env.scenes.mjcf import compile_scene, geom_aabb  # noqa: E402
 from a2catvn_jax.env.scenes.spec import CLASS_ID, STRUCTURAL_CLASSES  # noqa: E402
 from a2catvn_jax.env.world import SEGMENTATION_COLORS, World  # noqa: E402
 
@@ -734,7 +734,11 @@ def test_user_mjcf_with_planes_cylinders_and_meshes(tmp_path):
     assert env.world.backend == "mjx" and env.world.scenes[0].source == ("file", str(path))
     assert {(g.name, g.native) for g in env.world.scenes[0].geoms if g.native} == {
         ("floor", "plane"), ("table_0", "cylinder"), ("chair_0", "mesh")}
-    assert "chair_mesh" in env.scene_mjcf(0) and "agent_cam" in env.scene_mjcf(0)
+    text = env.scene_mjcf(0)  # compiles from any folder: its mesh folder is absolute
+    assert "chair_mesh" in text and "agent_cam" in text and compile_scene(text).nmesh == 1
+    chair = next(g for g in env.world.scenes[0].geoms if g.name == "chair_0")
+    np.testing.assert_allclose(chair.pos - chair.size, [-0.7, -0.6, 0.0], atol=1e-6)  # the OBJ's vertices, placed
+    np.testing.assert_allclose(chair.pos + chair.size, [-0.2, -0.1, 0.7], atol=1e-6)
     s0, final, rec = _short_run(env, 6, steps=20)
     _check_targets(env, final)
     poses = _all_poses(s0, rec)

@@ -494,6 +494,7 @@ def test_segmentation_and_formats(name, path, frames, request):
 
 NATIVE_XML = """
 <mujoco model="native">
+  <compiler angle="radian"/>
   <asset>
     <texture name="checker" type="2d" builtin="checker" width="64" height="64" rgb1=".2 .3 .4" rgb2=".9 .9 .9"/>
     <material name="tiles" texture="checker" texrepeat="6 4"/>
@@ -569,6 +570,22 @@ def test_planes_cylinders_meshes_and_textures_with_mjx(native):
     floor_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "floor")
     spread = [np.std(frame.rgb[frame.geom == floor_id].astype(float).mean(-1)) for frame in (f, untextured)]
     assert spread[0] > 3 * spread[1], spread
+    # Each one's box (what blocks the agent) holds every point mj_ray hits on it, and is
+    # tight: the tilted cylinder's box is the extent of points on its two rims.
+    scene = scene_from_mjcf(NATIVE_XML)
+    boxes = {g.name: (g.pos - g.size, g.pos + g.size) for g in scene.geoms if g.native}
+    points = b.pos[:, None, None, :] + b.dirs * b.ref_dist[..., None]
+    for name, (lo, hi) in boxes.items():
+        on = points[b.ref_geom == mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, name)]
+        assert len(on) and np.all(on >= lo - 1e-4) and np.all(on <= hi + 1e-4), name
+    plant = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "plant_0")
+    rot, (r, h) = b.datas[0].geom_xmat[plant].reshape(3, 3), m.geom_size[plant][:2]
+    assert abs(rot[2, 2]) < 0.5  # tilted by 1.2 rad
+    a = np.linspace(0, 2 * np.pi, 3601)
+    rim = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(a)], -1)
+    ends = np.concatenate([rim + [0, 0, h], rim - [0, 0, h]]) @ rot.T + b.datas[0].geom_xpos[plant]
+    np.testing.assert_allclose(boxes["plant_0"][0], ends.min(0), atol=1e-5)
+    np.testing.assert_allclose(boxes["plant_0"][1], ends.max(0), atol=1e-5)
     # The ray caster's geometry holds no family member for them.
     members = np.concatenate([np.asarray(fam.gid).ravel() for fam in b.geometry.families.values()])
     native_ids = [i for i in range(m.ngeom) if int(m.geom_type[i]) in mjcf_lib.NATIVE_TYPES]

@@ -138,6 +138,17 @@ def test_library_raises_scene_error(scene_dir, case):
     assert str(e.value).startswith(str(path))
 
 
+def test_model_settings_mjx_refuses_are_one_line(scene_dir):
+    """A native scene (compiled from the user's file) whose options MJX cannot use."""
+    path = scene_dir / "pgs.xml"
+    path.write_text(CASES["cylinder"][0].replace("<mujoco model=\"user_room\">",
+                                                 "<mujoco model=\"user_room\"><option solver=\"PGS\"/>"))
+    cfg = load_config(None, _scene_overrides(path) + ["env.render.backend=mjx"]).env
+    with pytest.raises(SceneError, match=r"pgs\.xml: the mjx backend cannot use this model: NotImplementedError") as e:
+        World(cfg, make_scenes(cfg))
+    assert "\n" not in str(e.value)
+
+
 def test_evaluation_environment_raises_scene_error(scene_dir):
     from a2catvn_jax.run.restore import make_env
 

@@ -190,7 +190,11 @@ class World:
             why = mjx_render.unavailable()
             if why:
                 raise SceneError(f"{what}, and the mjx backend cannot run here: {why}")
-            self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
+            try:
+                self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
+            except Exception as e:  # MJX refuses some of a model's settings (a solver, a plugin)
+                raise SceneError(f"{self.scenes[0].name}: the mjx backend cannot use this model: "
+                                 f"{type(e).__name__}: {' '.join(str(e).split())}") from e
             return "mjx", "" if backend == "mjx" else f"env.render.backend auto: mjx ({what})"
         if backend == "raycast":
             return backend, ""

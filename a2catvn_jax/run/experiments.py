@@ -272,14 +272,15 @@ def _stored_dir(base: Path, key: str, seed: int, cfg, pretrain: bool) -> Path:
 
 def _unfinished_dir(base: Path, key: str, seed: int, cfg, pretrain: bool) -> Optional[Path]:
     """The work directory (`base`: ROOT/SCALE/CONFIG) of a run in progress under another
-    key with the same configuration and at least one checkpoint, when BASE/KEY/seed_N has
-    none: a run started before keys were added to the configuration resumes there."""
+    key with the same configuration and at least one checkpoint (the furthest along), when
+    BASE/KEY/seed_N has none: a run started before keys were added to the configuration
+    resumes there."""
     if _saved_updates(base / key / f"seed_{seed}"):
         return None
-    for other in sorted(base.glob(f"*/seed_{seed}")):
-        if other.parent.name not in (key, BASELINE_DIR) and _same_run(other, cfg, pretrain) and _saved_updates(other):
-            return other
-    return None
+    found = [(max(_saved_updates(other), default=-1), other) for other in sorted(base.glob(f"*/seed_{seed}"))
+             if other.parent.name not in (key, BASELINE_DIR) and _same_run(other, cfg, pretrain)]
+    found = [(updates, other) for updates, other in found if updates >= 0]
+    return max(found, key=lambda f: f[0])[1] if found else None  # the one furthest along
 
 
 def plan(exp: Experiment, scale: str, seeds: Sequence[int], root=DEFAULT_ROOT, overrides: Sequence[str] = (),

@@ -250,15 +250,21 @@ def scene_from_mjcf_file(path: str | os.PathLike, name: Optional[str] = None) ->
 
 def _native_box(m: mujoco.MjModel, d: mujoco.MjData, i: int, where: str, label: str) -> tuple[np.ndarray, np.ndarray]:
     """(centre, half-sizes) of the world bounding box of a plane, cylinder or mesh geom."""
-    rot = d.geom_xmat[i].reshape(3, 3)
-    if int(m.geom_type[i]) == int(mujoco.mjtGeom.mjGEOM_PLANE):
-        if m.geom_size[i][0] <= 0 or m.geom_size[i][1] <= 0:
+    rot, pos, size = d.geom_xmat[i].reshape(3, 3), d.geom_xpos[i], m.geom_size[i]
+    gtype = int(m.geom_type[i])
+    if gtype == int(mujoco.mjtGeom.mjGEOM_PLANE):
+        if size[0] <= 0 or size[1] <= 0:
             raise SceneError(f"{where}{label} is an infinite plane (size 0); give it a finite size "
                              "(half-lengths along x and y), the scene's extent")
-        centre, half = np.zeros(3), np.array([m.geom_size[i][0], m.geom_size[i][1], 0.0])
-    else:
-        centre, half = m.geom_aabb[i][:3], m.geom_aabb[i][3:]
-    return d.geom_xpos[i] + rot @ centre, np.abs(rot) @ half
+        return pos, np.abs(rot) @ np.array([size[0], size[1], 0.0])
+    if gtype == int(mujoco.mjtGeom.mjGEOM_CYLINDER):  # exact: the two end discs' extents
+        axis = rot[:, 2]
+        return pos, size[0] * np.sqrt(np.clip(1.0 - axis**2, 0.0, 1.0)) + size[1] * np.abs(axis)
+    mesh = int(m.geom_dataid[i])  # exact: the extent of the mesh's vertices, placed
+    start, count = int(m.mesh_vertadr[mesh]), int(m.mesh_vertnum[mesh])
+    world = m.mesh_vert[start : start + count].astype(np.float64) @ rot.T + pos
+    lo, hi = world.min(axis=0), world.max(axis=0)
+    return (lo + hi) / 2, (hi - lo) / 2
 
 
 def _scene_of_model(m: mujoco.MjModel, name: str, where: str, source: Optional[tuple[str, str]] = None) -> Scene:
@@ -346,6 +352,10 @@ def native_model(scene: Scene, fovy: float) -> tuple[str, mujoco.MjModel]:
     where = f"{value}: " if kind == "file" else ""
     try:
         spec = mujoco.MjSpec.from_file(value) if kind == "file" else mujoco.MjSpec.from_string(value)
+        if kind == "file":  # asset folders made absolute: the MJCF text compiles from anywhere
+            folder = os.path.dirname(os.path.abspath(value))
+            spec.meshdir = os.path.join(folder, spec.meshdir)
+            spec.texturedir = os.path.join(folder, spec.texturedir)
         if spec.body(AGENT_BODY) is not None or spec.camera(AGENT_CAMERA) is not None:
             raise SceneError(f"{where}the MJCF already has a body {AGENT_BODY!r} or a camera {AGENT_CAMERA!r}; "
                              "the environment adds its agent under those names: rename them")
