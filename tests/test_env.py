@@ -14,6 +14,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 
@@ -23,7 +24,7 @@ from a2catvn_jax.config import ConfigError, load_config  # noqa: E402
 from a2catvn_jax.env import ACTION_SETS, NavEnv, State  # noqa: E402
 from a2catvn_jax.env.scenes.mjcf import compile_scene, geom_aabb  # noqa: E402
 from a2catvn_jax.env.scenes.spec import CLASS_ID, STRUCTURAL_CLASSES  # noqa: E402
-from a2catvn_jax.env.world import SEGMENTATION_COLORS, World  # noqa: E402
+from a2catvn_jax.env.world import BODY_MARGIN, SEGMENTATION_COLORS, World  # noqa: E402
 
 B = 32  # agents per batch
 T = 300  # steps per random rollout
@@ -748,6 +749,94 @@ def test_user_mjcf_with_planes_cylinders_and_meshes(tmp_path):
     assert (seg == CLASS_ID["table"]).any() and (seg == CLASS_ID["chair"]).any() and (seg == CLASS_ID["floor"]).any()
     auto = World(load_config(None, overrides + ["env.render.backend=auto"]).env, env.world.scenes)
     assert auto.backend == "mjx" and "only the mjx backend renders" in auto.backend_note
+
+
+MOVING_MJCF = """
+<mujoco model="moving">
+  <compiler angle="radian"/>
+  <worldbody>
+    <geom name="floor" type="box" size="3 2 0.05" pos="0 0 -0.05"/>
+    <geom name="wall_0" type="box" size="0.05 2 1.2" pos="3 0 1.2"/>
+    <geom name="wall_1" type="box" size="0.05 2 1.2" pos="-3 0 1.2"/>
+    <geom name="wall_2" type="box" size="3 0.05 1.2" pos="0 2 1.2"/>
+    <geom name="wall_3" type="box" size="3 0.05 1.2" pos="0 -2 1.2"/>
+    <geom name="table_0" type="box" size="0.4 0.3 0.4" pos="-2 -1.2 0.4"/>
+    <body name="door" pos="0 -0.6 0">
+      <joint name="door_hinge" type="hinge" axis="0 0 1" range="-1.4 1.4"/>
+      <geom name="door_frame_leaf" type="box" size="0.5 0.03 1.0" pos="0.5 0 1.0" rgba="0.6 0.4 0.2 1"/>
+    </body>
+    <body name="drawer" pos="-1.2 1.2 0.4">
+      <joint name="drawer_slide" type="slide" axis="1 0 0" range="-0.6 0.6"/>
+      <geom name="cabinet_0" type="box" size="0.3 0.25 0.4" rgba="0.3 0.3 0.8 1"/>
+    </body>
+    <body name="lamp" pos="1.5 1.0 2.5">
+      <joint name="lamp_slide" type="slide" axis="0 0 1" range="-2.3 -0.5"/>
+      <geom name="lamp_0" type="sphere" size="0.2" rgba="0.9 0.9 0.9 1"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_scene_with_moving_bodies(tmp_path, backend):
+    """A user's scene with a door on a hinge, a drawer on a slide and a lamp that is
+    sometimes above the agent: every episode draws the joints' positions within their
+    ranges into its `mjx.Data`; the agent never starts in, nor walks into, a moving
+    geom where MuJoCo's own kinematics places it (a lamp above its body does not block
+    it), a door in the way stops a step short, and what the agent sees is rendered
+    from its data (the door shows up in the segmentation)."""
+    path = tmp_path / "moving.xml"
+    path.write_text(MOVING_MJCF)
+    overrides = BASE + ["env.num_envs=8", "env.scene.kind=mjcf", f"env.scene.mjcf_path={path}", "env.goal=image",
+                        "env.max_episode_steps=6", f"env.render.backend={backend}"]
+    env = NavEnv(load_config(None, overrides).env)
+    model, mw = env.world.models[0], env.world.mjx
+    assert mw.nq == 3 and len(mw.moving) == 3
+    actions = _random_actions(env, 3, 60)
+
+    def run(key):
+        s0 = env.reset(key)
+
+        def body(s, a):
+            s = env.step(s, a)
+            return s, (s.info.pose, s.data.qpos, s.obs.segmentation, s.info.step, s.obs.depth)
+
+        return s0, jax.lax.scan(body, s0, actions)[1]
+
+    s0, (pose, qpos, seg, step, depth) = jax.jit(run)(jax.random.PRNGKey(0))
+    pose = np.concatenate([np.asarray(s0.info.pose)[None], np.asarray(pose)]).reshape(-1, 4)
+    qpos = np.concatenate([np.asarray(s0.data.qpos)[None], np.asarray(qpos)]).reshape(-1, 3)
+    lo, hi = (np.asarray(a) for a in mw.qpos_range)
+    assert np.all((qpos >= lo - 1e-6) & (qpos <= hi + 1e-6))
+    assert len(np.unique(qpos[:, 0].round(4))) > 40  # a new door angle each episode (8 agents, ~10 episodes each)
+    assert np.all(np.isfinite(np.asarray(depth)))
+    r = env.cfg.agent_radius
+    d = mujoco.MjData(model)
+    above = 0
+    for p, q in zip(pose, qpos):
+        d.qpos[:] = q
+        mujoco.mj_forward(model, d)
+        for g in mw.moving:
+            box = int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_BOX)  # else a sphere
+            half = np.abs(d.geom_xmat[g].reshape(3, 3)) @ model.geom_size[g] if box else model.geom_size[g][0]
+            lo3, hi3 = d.geom_xpos[g] - half, d.geom_xpos[g] + half
+            if lo3[2] >= env.cfg.camera_height + BODY_MARGIN:
+                above += 1
+                continue
+            inside = np.all(p[:2] > lo3[:2] - r + TOL) and np.all(p[:2] < hi3[:2] + r - TOL)
+            assert not inside, (p, q, mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, int(g)))
+    assert above > 0  # the lamp was above the agent's body at times
+    door = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "door_frame_leaf")
+    assert (np.asarray(seg) == CLASS_ID["door_frame"]).any() and env.world.arrays.geometry.cls[0, door] == CLASS_ID["door_frame"]
+    # A closed door (angle 0: along y = -0.6, x in [0, 1]) in front of an agent facing it.
+    w = env.world.arrays
+    scene = jnp.zeros(8, jnp.int32)
+    start = jnp.tile(jnp.asarray([0.5, -1.2, np.pi / 2, 0.0], jnp.float32), (8, 1))
+    data = env.world.place_agent(env.world.scene_data(w, scene, jnp.zeros((8, 3))), start)
+    state = s0.replace(info=s0.info.replace(pose=start, step=jnp.zeros(8, jnp.int32), scene=scene), data=data)
+    after = jax.jit(env.step)(state, jnp.zeros(8, jnp.int32))  # forward 0.5 m
+    y = np.asarray(after.info.pose[:, 1])
+    assert np.all(y <= -0.6 - 0.03 - r + 1e-3) and np.all(y > -1.2), y
 
 
 # ------------------------------------------------------------- 8. the two backends agree

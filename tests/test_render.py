@@ -16,10 +16,12 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from mujoco import mjx
 
 from a2catvn_jax.env import camera, navgrid
-from a2catvn_jax.env.geometry import Geometry, pack, take
+from a2catvn_jax.env.geometry import Geometry, pack, slots, take
 from a2catvn_jax.env.mjx_render import MjxRenderer, fields_of
+from a2catvn_jax.env.mjx_world import MjxWorld, agent_pose
 from a2catvn_jax.env.render import CameraSpec, Frame, render, render_batch
 from a2catvn_jax.env.scenes import (
     AGENT_RADIUS,
@@ -273,7 +275,8 @@ def _mjx_renderer(spec: CameraSpec, batch: Batch):
     fields = fields_of(batch.models)
 
     def run(geometry, scene, pos, yaw, tilt):
-        return renderer.render(fields, geometry.cls, scene, pos, yaw, tilt)
+        _, _, cam_mat = agent_pose(jnp.stack([pos[:, 0], pos[:, 1], yaw, tilt], -1), 0.0)
+        return renderer.render(fields, geometry.cls, scene, pos, cam_mat, fields.geom_xpos[scene], fields.geom_xmat[scene])
 
     return jax.jit(run)
 
@@ -590,6 +593,111 @@ def test_planes_cylinders_meshes_and_textures_with_mjx(native):
     members = np.concatenate([np.asarray(fam.gid).ravel() for fam in b.geometry.families.values()])
     native_ids = [i for i in range(m.ngeom) if int(m.geom_type[i]) in mjcf_lib.NATIVE_TYPES]
     assert native_ids and not set(native_ids) & set(members.tolist())
+
+
+MOVING_XML = """
+<mujoco model="moving">
+  <compiler angle="radian"/>
+  <worldbody>
+    <geom name="floor" type="box" size="3 2 0.05" pos="0 0 -0.05"/>
+    <geom name="wall_0" type="box" size="0.05 2 1.2" pos="3 0 1.2"/>
+    <geom name="wall_1" type="box" size="0.05 2 1.2" pos="-3 0 1.2"/>
+    <geom name="wall_2" type="box" size="3 0.05 1.2" pos="0 2 1.2"/>
+    <geom name="wall_3" type="box" size="3 0.05 1.2" pos="0 -2 1.2"/>
+    <body name="door" pos="0 -0.6 0">
+      <joint name="door_hinge" type="hinge" axis="0 0 1" range="-1.4 1.4"/>
+      <geom name="door_frame_leaf" type="box" size="0.5 0.03 1.0" pos="0.5 0 1.0" rgba="0.6 0.4 0.2 1"/>
+    </body>
+    <body name="drawer" pos="-1.5 1.2 0.4">
+      <joint name="drawer_slide" type="slide" axis="1 0 0" range="-0.6 0.6"/>
+      <geom name="cabinet_0" type="box" size="0.3 0.25 0.2" rgba="0.3 0.3 0.8 1"/>
+      <body name="knob" pos="0 -0.3 0">
+        <joint name="knob_turn" type="hinge" axis="0 1 0"/>
+        <geom name="cabinet_knob" type="capsule" size="0.04 0.12" rgba="0.9 0.9 0.1 1"/>
+      </body>
+    </body>
+    <body name="lamp" pos="1.5 1.0 0.8">
+      <joint name="lamp_slide" type="slide" axis="0 0 1" range="-0.3 0.5"/>
+      <geom name="lamp_0" type="ellipsoid" size="0.2 0.1 0.3" euler="0.3 0 0" rgba="0.9 0.5 0.5 1"/>
+      <geom name="lamp_1" type="sphere" size="0.12" pos="0 0 0.4" rgba="0.9 0.9 0.9 1"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_moving_bodies_render_where_their_data_puts_them():
+    """A scene with bodies on hinge and slide joints: with joint positions drawn per
+    frame, both backends (reading the geom poses from each frame's `mjx.Data`, placed
+    by `mjx.kinematics`) give mj_ray's depth and geom id at every pixel, for mj_ray
+    run on MuJoCo's own data at the same joint positions. The agent's camera in the
+    data is where MuJoCo's kinematics puts the mocap body's camera."""
+    scene = scene_from_mjcf(MOVING_XML)
+    moving = {g.name for g in scene.geoms if g.moving}
+    assert moving == {"door_frame_leaf", "cabinet_0", "cabinet_knob", "lamp_0", "lamp_1"} and scene.source
+    _, model = mjcf_lib.native_model(scene, FOVY)
+    world = MjxWorld(model, CAM_Z)
+    assert world.nq == 4 and len(world.moving) == 5
+    fields = fields_of([model])
+    geometry = pack([model], [False], [2.4])
+    where = slots(take(geometry, 0), world.moving)
+    assert all(f != "abox" for f, _ in where)  # moving boxes are oriented boxes
+    num = 12
+    rng = np.random.default_rng(5)
+    qpos = jax.vmap(world.draw_qpos)(jax.random.split(jax.random.PRNGKey(3), num))
+    lo, hi = (np.asarray(a) for a in world.qpos_range)
+    assert np.all((np.asarray(qpos) >= lo) & (np.asarray(qpos) <= hi)) and np.ptp(np.asarray(qpos), 0).min() > 0.3
+    targets = np.array([[0.5, -0.6], [-1.5, 1.0], [1.5, 1.0]])
+    pose = []
+    for k in range(num):
+        # Outside every moving geom's footprint (as the environment keeps the agent).
+        d = mujoco.MjData(model)
+        d.qpos[:] = np.asarray(qpos[k], np.float64)
+        mujoco.mj_forward(model, d)
+        while True:
+            xy = np.array([rng.uniform(-2.5, 2.5), rng.uniform(-1.7, 1.7)])
+            if all(np.linalg.norm(xy - d.geom_xpos[i, :2]) > model.geom_rbound[i] + 0.1 for i in world.moving):
+                break
+        to = targets[k % 3] - xy
+        pose.append([xy[0], xy[1], np.arctan2(to[1], to[0]) + rng.uniform(-0.2, 0.2), rng.uniform(-0.4, 0.3)])
+    pose = jnp.asarray(pose, jnp.float32)
+    scene_idx = jnp.zeros(num, jnp.int32)
+    data = jax.jit(jax.vmap(lambda q, p: world.place_agent(world.data(fields, 0, q), p)))(qpos, pose)
+    # The camera in the data is where MuJoCo's own kinematics (mjx) puts the mocap body's.
+    kin = jax.vmap(lambda d: mjx.kinematics(world.model, d))(data)
+    np.testing.assert_allclose(np.asarray(kin.cam_xpos[:, world.camera]), np.asarray(data.cam_xpos[:, world.camera]), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(kin.cam_xmat[:, world.camera]), np.asarray(data.cam_xmat[:, world.camera]), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(kin.xquat[:, world.body]), np.asarray(data.xquat[:, world.body]), atol=1e-5)
+    # mj_ray on MuJoCo's data at the same joint positions, from the same rays.
+    pos = np.asarray(data.cam_xpos[:, world.camera], np.float64)
+    dirs = np.asarray(jax.vmap(lambda y, t: camera.ray_directions(y, t, H, W, FOVY))(pose[:, 2], pose[:, 3]), np.float64)
+    ref_geom = np.zeros((num, H * W), np.int32)
+    ref_dist = np.zeros((num, H * W))
+    datas = []
+    for b in range(num):
+        d = mujoco.MjData(model)
+        d.qpos[:] = np.asarray(qpos[b], np.float64)
+        mujoco.mj_forward(model, d)
+        np.testing.assert_allclose(np.asarray(data.geom_xpos[b, world.moving]), d.geom_xpos[world.moving], atol=1e-5)
+        mujoco.mj_multiRay(model, d, pos[b], dirs[b].reshape(-1).copy(), None, 1, -1, ref_geom[b], ref_dist[b], None,
+                           H * W, mujoco.mjMAXVAL)
+        datas.append(d)
+    seen_moving = set(np.unique(ref_geom).tolist()) & set(world.moving.tolist())
+    assert len(seen_moving) >= 4, seen_moving
+    b = Batch(models=[model] * num, datas=datas, geometry=geometry, spec=SPEC, scene=np.arange(num), pos=pos.astype(np.float32),
+              yaw=np.asarray(pose[:, 2]), tilt=np.asarray(pose[:, 3]), dirs=dirs, ref_geom=ref_geom.reshape(num, H, W),
+              ref_dist=ref_dist.reshape(num, H, W))
+    renderer = MjxRenderer(model, SPEC)
+    outs = {
+        "raycast": jax.jit(lambda d: render_batch(geometry, scene_idx, d.cam_xpos[:, world.camera], pose[:, 2], pose[:, 3], SPEC,
+                                                  (where, world.moving, d.geom_xpos[:, world.moving], d.geom_xmat[:, world.moving])))(data),
+        "mjx": jax.jit(lambda d: renderer.render(fields, geometry.cls, scene_idx, d.cam_xpos[:, world.camera],
+                                                 d.cam_xmat[:, world.camera], d.geom_xpos, d.geom_xmat))(data),
+    }
+    for name, f in outs.items():
+        lines, stats = _compare_with_mujoco(b, _numpy(f))
+        print(f"\nmoving/{name}: max depth error {stats[0]:.3g} m over {stats[3]} hits of {stats[2]} rays")
+        assert not lines, f"{name}: {len(lines)} pixels disagree with mj_ray:\n" + "\n".join(lines[:20])
 
 
 # ----------------------------------------------------------------------------------

@@ -145,7 +145,8 @@ def _scene_geoms(m: mujoco.MjModel, closed: bool, height: float, skip_unsupporte
         per_geom["rgb"][i] = m.mat_rgba[mat, :3] if mat >= 0 else m.geom_rgba[i, :3]
         per_geom["cls"][i] = cls
         per_geom["pattern"][i] = _PATTERN_OF_CLASS.get(CLASS_NAMES[cls], PATTERN_PLAIN)
-        if t == _BOX and _is_axis_permutation(rot):
+        moving = m.body_weldid[m.geom_bodyid[i]] != 0  # its pose changes per episode (`place`)
+        if t == _BOX and _is_axis_permutation(rot) and not moving:
             fam, rot, size = "abox", np.eye(3), (aabb[3:] - aabb[:3]) / 2
         elif t == _BOX:
             fam = "obox"
@@ -158,7 +159,7 @@ def _scene_geoms(m: mujoco.MjModel, closed: bool, height: float, skip_unsupporte
         # Exact 2D occluders of a closed scene: world-aligned boxes spanning the whole
         # storey. A ray from inside the scene that crosses their footprint has hit
         # something no farther away (them, or the floor/ceiling before leaving).
-        occluder = fam == "abox" and closed and valid and aabb[2] <= 1e-6 and aabb[5] >= height - 1e-6
+        occluder = fam == "abox" and not moving and closed and valid and aabb[2] <= 1e-6 and aabb[5] >= height - 1e-6
         kind = {"abox": 0, "obox": 0, "ell": 1, "cap": 2}[fam]
         per_geom["shape_table"][i] = np.concatenate([pos if fam != "abox" else (aabb[:3] + aabb[3:]) / 2, rot.ravel(), size, [kind]])
         members[fam].append((pos, rot, size, i, valid, aabb[[0, 1, 3, 4]], occluder))
@@ -214,3 +215,49 @@ def pack(models: list[mujoco.MjModel], closed: list[bool], heights: list[float],
 def take(geometry: Geometry, index) -> Geometry:
     """Scene `index` of a batched Geometry (index may be traced, or an array of them)."""
     return jax.tree_util.tree_map(lambda a: a[index], geometry)
+
+
+def slots(geometry: Geometry, gids) -> tuple[tuple[str, int], ...]:
+    """(family, member index) of each geom id of `gids` in an unbatched or one-scene
+    `geometry` (for `place`)."""
+    out = []
+    for g in np.asarray(gids).tolist():
+        for f in FAMILIES:
+            ids = np.asarray(geometry.families[f].gid).reshape(-1)
+            hit = np.flatnonzero(ids == g)
+            if hit.size:
+                out.append((f, int(hit[0])))
+                break
+        else:
+            raise ValueError(f"geom {g} is in no family of the ray caster")
+    return tuple(out)
+
+
+def place(geom: Geometry, where: tuple[tuple[str, int], ...], gids, xpos, xmat) -> Geometry:
+    """One scene's (unbatched) `geom` with the geoms `gids` [K] (at `where`, from `slots`)
+    moved to world positions xpos [K, 3] and rotations xmat [K, 3, 3]: their family
+    entries, footprints, boxes and normals' frames."""
+    families = dict(geom.families)
+    gids = np.asarray(gids)
+    for f in FAMILIES:
+        ks = np.array([k for k, (fam, _) in enumerate(where) if fam == f], np.int32)
+        if ks.size == 0:
+            continue
+        idx = np.array([where[k][1] for k in ks], np.int32)
+        fam = families[f]
+        pos, rot, size = xpos[ks], xmat[ks], fam.size[idx]
+        if f == "obox":
+            half = jnp.abs(rot) @ size[:, :, None]
+        elif f == "ell":
+            half = jnp.sqrt((rot**2) @ (size[:, :, None] ** 2))
+        else:  # capsule: (radius, half-length) along local z
+            half = (jnp.abs(rot[:, :, 2]) * size[:, 1:2] + size[:, :1])[..., None]
+        half = half[..., 0]
+        families[f] = fam.replace(pos=fam.pos.at[idx].set(pos), rot=fam.rot.at[idx].set(rot),
+                                  fp=fam.fp.at[idx].set(jnp.concatenate([pos[:, :2] - half[:, :2], pos[:, :2] + half[:, :2]], -1)))
+        g = gids[ks]
+        geom = geom.replace(
+            aabb=geom.aabb.at[g].set(jnp.concatenate([pos - half, pos + half], -1)),
+            shape_table=geom.shape_table.at[g, :12].set(jnp.concatenate([pos, rot.reshape(-1, 9)], -1)),
+        )
+    return geom.replace(families=families)

@@ -4,9 +4,11 @@
 (package `warp-lang`). Its render context is built once from one MuJoCo model and
 fixes the number of worlds it renders, so one context is kept per batch size. Every
 world of the batch may be a different scene of the same geom layout: the scene's
-geom sizes, colours and world poses are given per world (`MjxFields`), and the BVH is
-refitted to them before each render, so one context serves a batch of houses, and a
-world passed as data (held-out houses) renders exactly like the environment's own.
+geom sizes and colours are given per world (`MjxFields`), the camera's and the geoms'
+world poses come from each environment's `mjx.Data` (`mjx_world`), and the BVH is
+refitted to them before each render, so one context serves a batch of houses, bodies
+that move render where they are, and a world passed as data (held-out houses) renders
+exactly like the environment's own.
 
 The observation is the one the `raycast` backend gives (`render.Frame`): RGB, depth
 along the pixel's ray in metres (MuJoCo reports planar depth; it is converted), the
@@ -38,7 +40,7 @@ _DEPTH_SCALE = 2.0**20  # metres
 # context is built from may be a real geom in another scene. Geoms that `mujoco.mj_ray`
 # does not see (padding, alpha 0) are moved out of reach instead (`fields_of`).
 RENDER_GROUPS = tuple(range(mujoco.mjNGROUP))
-_AWAY = (0.0, 0.0, -1e6)  # metres: where unseen geoms are put, shrunk to _AWAY_SIZE
+AWAY = (0.0, 0.0, -1e6)  # metres: where unseen geoms are put, shrunk to _AWAY_SIZE
 _AWAY_SIZE = 1e-6
 
 
@@ -82,7 +84,7 @@ def fields_of(models: list[mujoco.MjModel]) -> MjxFields:
         mujoco.mj_forward(m, d)
         size, pos = m.geom_size.copy(), d.geom_xpos.copy()
         unseen = np.array([not seen(m, i) for i in range(m.ngeom)], bool)
-        size[unseen], pos[unseen] = _AWAY_SIZE, _AWAY
+        size[unseen], pos[unseen] = _AWAY_SIZE, AWAY
         rows.append((size, m.geom_rgba, pos, d.geom_xmat.reshape(-1, 3, 3)))
     return MjxFields(*(jnp.asarray(np.stack(col), jnp.float32) for col in zip(*rows)))
 
@@ -124,26 +126,26 @@ class MjxRenderer:
                 cam_active=[i == self.camera for i in range(self.model.ncam)])
         return self._contexts[worlds]
 
-    def render(self, fields: MjxFields, geom_class, scene, cam_pos, yaw, tilt) -> Frame:
-        """Frames [N] of cameras at cam_pos [N, 3], yaw/tilt [N] (radians) in scenes [N]
-        of `fields`; `geom_class` [S, G]: the semantic class of each geom."""
+    def render(self, fields: MjxFields, geom_class, scene, cam_pos, cam_mat, geom_xpos, geom_xmat) -> Frame:
+        """Frames [N] of cameras at cam_pos [N, 3] with rotations cam_mat [N, 3, 3] (MuJoCo's
+        `cam_xmat`) in scenes [N] of `fields`, whose geoms are at geom_xpos [N, G, 3] with
+        rotations geom_xmat [N, G, 3, 3] (each environment's `mjx.Data`); `geom_class`
+        [S, G]: the semantic class of each geom."""
         if fields.geom_size.shape[-2] != self.model.ngeom:
             raise BackendError(f"the mjx backend renders worlds of {self.model.ngeom} geoms (its render context's layout); "
                                f"these arrays have {fields.geom_size.shape[-2]}: build every world with one geom layout "
                                "(World(..., layout=...))")
         n = scene.shape[0]
         rc = self.context(n).pytree()
-        right, up, forward = camera.camera_basis(yaw, tilt)
-        cam_mat = jnp.stack([right, up, -forward], axis=-1)  # MuJoCo cameras look along -z
 
-        def world(s, pos, mat):
+        def world(s, pos, mat, xpos, xmat):
             m = self._mx.replace(geom_size=fields.geom_size[s], geom_rgba=fields.geom_rgba[s])
             d = self._dx.replace(cam_xpos=self._dx.cam_xpos.at[self.camera].set(pos),
                                  cam_xmat=self._dx.cam_xmat.at[self.camera].set(mat),
-                                 geom_xpos=fields.geom_xpos[s], geom_xmat=fields.geom_xmat[s])
+                                 geom_xpos=xpos, geom_xmat=xmat)
             return m, d
 
-        m, d = jax.vmap(world)(scene, cam_pos, cam_mat)
+        m, d = jax.vmap(world)(scene, cam_pos, cam_mat, geom_xpos, geom_xmat)
         d = jax.vmap(mjx.refit_bvh, in_axes=(0, 0, None))(m, d, rc)
         rgb, depth, seg, _ = jax.vmap(mjx.render_with_segmentation, in_axes=(0, 0, None))(m, d, rc)
         rgb = jnp.round(mjx.get_rgb(rc, self.camera, rgb) * 255).astype(jnp.uint8)

@@ -7,6 +7,12 @@ vmap-able. An episode ends on success (`terminated`, reward 1) or after
 then reset in the same step (auto-reset): `obs` shows the new episode's first frame
 while `reward`, `terminated`, `truncated` and `metrics` describe the step that ended.
 
+Each environment's state holds the `mjx.Data` of its scene (`State.data`, `mjx_world`):
+the agent is the scene's mocap body with its camera, each move writes the agent's
+pose into it, and the renderers read the camera and the geoms from it. A scene with
+bodies on joints gets new joint positions each episode; their geoms block the agent
+where they are.
+
 The world (`WorldArrays`: geometry, occupancy grids, goals, target images) is data:
 `reset` and `step` read it from their `world` argument (the environment's own world
 when omitted), so one compiled step serves every world of the same shapes: training,
@@ -49,10 +55,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from mujoco import mjx
 
 from a2catvn_jax.config import EnvConfig
 from a2catvn_jax.env import camera, rects, render
-from a2catvn_jax.env.world import SEGMENTATION_COLORS, World, WorldArrays, cam_position, make_scenes
+from a2catvn_jax.env.world import BODY_MARGIN, SEGMENTATION_COLORS, World, WorldArrays, cam_position, make_scenes
 
 # (forward, left, rotate, tilt) per action; metres and degrees.
 ACTION_SETS = {
@@ -130,7 +137,9 @@ class State:
     """Batched environment state (leading axis B everywhere).
 
     obs: `Observation`; reward [B] float32; terminated [B] bool (the step reached the
-    goal); truncated [B] bool (the episode hit the time limit); info: `Info`.
+    goal); truncated [B] bool (the episode hit the time limit); info: `Info`;
+    data: each environment's `mjx.Data` of its scene (`mjx_world`): the agent's mocap
+    body and camera at `info.pose`, the scene's bodies where the episode placed them.
     metrics (of the step just taken; episode_* are meaningful where `done`):
       success, truncated, episode_length, episode_return, episode_spl,
       episode_start_distance, fallback (renderer fell back to brute force).
@@ -142,6 +151,7 @@ class State:
     truncated: jnp.ndarray
     metrics: dict
     info: Info
+    data: mjx.Data
 
     @property
     def done(self):
@@ -199,13 +209,16 @@ class NavEnv:
         keys = jax.random.split(key, B)
         scene = jnp.arange(B, dtype=jnp.int32) % w.free.shape[0]
         keys, scene = self._next_scene(w, keys, scene)
-        keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, scene, tau)
+        keys, data = self._scene_data(w, keys, scene)
+        keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0, 0))(
+            w, keys, scene, tau, self._moving_footprints(data))
         info = self._episode_info(w, start, scene, tau, keys)
-        frame = self._render(w, scene, info.pose)
+        data = self.world.place_agent(data, info.pose)
+        frame = self._render(w, scene, info.pose, data)
         info = self._count_views(w, info, frame, jnp.zeros((B,), bool))
         zeros = jnp.zeros((B,), jnp.float32)
         metrics = self._metrics(zeros > 1, zeros > 1, info, zeros, frame.fallback)
-        return State(self._obs(w, frame, info), zeros, zeros > 1, zeros > 1, metrics, info)
+        return State(self._obs(w, frame, info), zeros, zeros > 1, zeros > 1, metrics, info, data)
 
     def step(self, state: State, action, world: Optional[WorldArrays] = None) -> State:
         """Apply actions [B] (int) in `world` (default: the environment's own) and auto-reset
@@ -216,8 +229,8 @@ class NavEnv:
         w = self._world(world)
         info = state.info
         keys, noise_key = jax.vmap(jax.random.split, out_axes=1)(info.key)
-        pose, moved = jax.vmap(self._move, in_axes=(None, 0, 0, 0, 0))(
-            w, info.scene, info.pose, jnp.asarray(action, jnp.int32), noise_key)
+        pose, moved = jax.vmap(self._move, in_axes=(None, 0, 0, 0, 0, 0))(
+            w, info.scene, info.pose, jnp.asarray(action, jnp.int32), noise_key, self._moving_footprints(state.data))
         if self._seen:  # the streak up to the current observation decides; the move is not made
             success = info.view_streak >= self.cfg.view_steps
             pose = _where(success, info.pose, pose)
@@ -232,14 +245,25 @@ class NavEnv:
                              episode_return=info.episode_return + reward)
 
         keys, scene = self._next_scene(w, keys, info.scene)
-        keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, scene, info.complexity)
+        keys, fresh_data = self._scene_data(w, keys, scene)
+        keys, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0, 0))(
+            w, keys, scene, info.complexity, self._moving_footprints(fresh_data))
         fresh = self._episode_info(w, start, scene, info.complexity, keys)
         ended = ended.replace(key=keys)
         new_info = jax.tree_util.tree_map(lambda a, b: _where(done, a, b), fresh, ended)
-        frame = self._render(w, new_info.scene, new_info.pose)
+        data = jax.tree_util.tree_map(lambda a, b: _where(done, a, b), fresh_data, state.data)
+        data = self.world.place_agent(data, new_info.pose)
+        frame = self._render(w, new_info.scene, new_info.pose, data)
         new_info = self._count_views(w, new_info, frame, ~done)
         metrics = self._metrics(success, truncated, ended, reward, frame.fallback)
-        return State(self._obs(w, frame, new_info), reward, success, truncated, metrics, new_info)
+        return State(self._obs(w, frame, new_info), reward, success, truncated, metrics, new_info, data)
+
+    def with_data(self, state: State, world: Optional[WorldArrays] = None) -> State:
+        """`state` with each environment's `mjx.Data` made anew from its scene and pose
+        (the scenes' bodies in their reference configuration): for states saved before
+        the environment's state held its data."""
+        w = self._world(world)
+        return state.replace(data=self.world.data(w, state.info.scene, state.info.pose))
 
     def set_complexity(self, state: State, complexity) -> State:
         """The same state with curriculum complexity tau for the episodes that follow."""
@@ -273,16 +297,17 @@ class NavEnv:
         frame = self.render_poses(jnp.array([scene_index]), jnp.asarray(pose)[None])
         return jax.tree_util.tree_map(lambda a: a[0], frame)
 
-    def render_poses(self, scenes, poses, world: Optional[WorldArrays] = None) -> render.Frame:
-        """Frames [N] seen from poses [N, 4] in scenes [N]."""
-        return self._render(self._world(world), jnp.asarray(scenes, jnp.int32), jnp.asarray(poses, jnp.float32))
+    def render_poses(self, scenes, poses, world: Optional[WorldArrays] = None, data=None) -> render.Frame:
+        """Frames [N] seen from poses [N, 4] in scenes [N], with the scenes' bodies where
+        `data` [N] has them (default: their reference configuration)."""
+        return self._render(self._world(world), jnp.asarray(scenes, jnp.int32), jnp.asarray(poses, jnp.float32), data)
 
     def sample_starts(self, keys, scenes, complexity, world: Optional[WorldArrays] = None):
         """(goal [N], pose [N, 4], start distance [N]) of new episodes in scenes [N], one per key,
         drawn as `reset` draws them at curriculum complexity [N]."""
         w = self._world(world)
-        _, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0))(w, keys, jnp.asarray(scenes, jnp.int32),
-                                                                          complexity)
+        _, start = jax.vmap(self._sample_episode, in_axes=(None, 0, 0, 0, None))(w, keys, jnp.asarray(scenes, jnp.int32),
+                                                                                complexity, None)
         return start
 
     def preview(self, scene, pose, action, world: Optional[WorldArrays] = None):
@@ -299,8 +324,24 @@ class NavEnv:
     def _world(self, world: Optional[WorldArrays]) -> WorldArrays:
         return self.world.arrays if world is None else world
 
-    def _render(self, w: WorldArrays, scene, pose) -> render.Frame:
-        return self.world.render(w, scene, pose)
+    def _render(self, w: WorldArrays, scene, pose, data=None) -> render.Frame:
+        return self.world.render(w, scene, pose, data)
+
+    def _scene_data(self, w: WorldArrays, keys, scene):
+        """(keys, data [B] of new episodes in scenes [B]): joint positions drawn uniformly
+        within their ranges (scenes with moving bodies); the agent is not placed yet."""
+        qpos = None
+        if self.world.mjx.has_joints:
+            keys, sub = jax.vmap(jax.random.split, out_axes=1)(keys)
+            qpos = jax.vmap(self.world.mjx.draw_qpos)(sub)
+        return keys, self.world.scene_data(w, scene, qpos)
+
+    def _moving_footprints(self, data):
+        """[B, K, 4] footprints of the K moving geoms where `data` has them; None when the
+        scenes have no moving geoms."""
+        if self.world.mjx.moving.size == 0:
+            return None
+        return self.world.mjx.footprints(data, self.cfg.camera_height + BODY_MARGIN)
 
     def _obs(self, w: WorldArrays, frame: render.Frame, info: Info) -> Observation:
         s, g = info.scene, info.goal
@@ -355,14 +396,22 @@ class NavEnv:
         drawn = jax.vmap(lambda k: jax.random.randint(k, (), 0, w.free.shape[0]))(sub)
         return keys, drawn.astype(jnp.int32)
 
-    def _sample_episode(self, w: WorldArrays, key, scene, tau):
-        """(next key, (goal, pose, start distance)) of a new episode in `scene`."""
+    def _sample_episode(self, w: WorldArrays, key, scene, tau, moving=None):
+        """(next key, (goal, pose, start distance)) of a new episode in `scene`; `moving`
+        [K, 4]: footprints of moving geoms, where no start may lie."""
         key, kg, kc, kj, ky = jax.random.split(key, 5)
         goal = jax.random.randint(kg, (), 0, w.goal_dist.shape[1])
         dist = w.goal_dist[scene, goal]
         limit = jnp.maximum(tau * w.diameter[scene], w.goal_min_dist[scene, goal])
         ok = w.free[scene] & ~w.goal_success[scene, goal] & (dist <= limit)
         H, W = dist.shape
+        reach = self.cfg.agent_radius + _CONTACT_GAP
+        if moving is not None:
+            centres = w.grid_origin[scene] + (jnp.stack(jnp.meshgrid(jnp.arange(W), jnp.arange(H)), -1) + 0.5) * self.cfg.grid_resolution
+            ok &= ~rects.inside(centres, moving, reach).any(-1)
+            obstacles = jnp.concatenate([w.obstacles[scene], moving])
+        else:
+            obstacles = w.obstacles[scene]
         cell = _uniform_index(kc, ok.reshape(-1))
         i, j = cell // W, cell % W
         res = self.cfg.grid_resolution
@@ -373,7 +422,7 @@ class NavEnv:
         else:
             yaw = jax.random.uniform(ky, (), minval=-jnp.pi, maxval=jnp.pi)
             jitter = centre + jax.random.uniform(kj, (2,), minval=-0.5, maxval=0.5) * res
-            blocked = rects.inside(jitter, w.obstacles[scene], self.cfg.agent_radius + _CONTACT_GAP).any()
+            blocked = rects.inside(jitter, obstacles, reach).any()
             xy = jnp.where(blocked, centre, jitter)
         pose = jnp.concatenate([xy, jnp.stack([yaw, 0.0])])
         return key, (goal, pose, dist[i, j])
@@ -395,11 +444,11 @@ class NavEnv:
             view_streak=jnp.zeros_like(scene),
         )
 
-    def _sweep(self, w: WorldArrays, scene, p0, p1):
+    def _sweep(self, w: WorldArrays, scene, p0, p1, moving=None):
         """Fraction in [0, 1] of the segment p0 -> p1 the agent can travel before its
-        grown footprint would touch an obstacle."""
+        grown footprint would touch an obstacle (or a moving geom's footprint [K, 4])."""
         r = self.cfg.agent_radius
-        ob = w.obstacles[scene]
+        ob = w.obstacles[scene] if moving is None else jnp.concatenate([w.obstacles[scene], moving])
         grown = jnp.concatenate([ob[:, :2] - r, ob[:, 2:] + r], -1)
         d = p1 - p0
         tn, tf = rects.slab(p0, d, grown)
@@ -411,9 +460,9 @@ class NavEnv:
         stop = jnp.clip(first - _CONTACT_GAP / jnp.maximum(length, 1e-9), 0.0, 1.0)
         return jnp.where(jnp.any(hits), stop, 1.0)
 
-    def _move(self, w: WorldArrays, scene, pose, action, key):
+    def _move(self, w: WorldArrays, scene, pose, action, key, moving=None):
         """New pose after `action` and the distance actually travelled (no motion noise
-        when `key` is None)."""
+        when `key` is None); `moving` [K, 4]: footprints of moving geoms that block too."""
         fwd, left, rot, tilt = (jnp.asarray(self._moves)[action, i] for i in range(4))
         x, y, yaw, cam_tilt = pose[0], pose[1], pose[2], pose[3]
         p0 = jnp.stack([x, y])
@@ -423,7 +472,7 @@ class NavEnv:
             kp, kh = jax.random.split(key)
             step = step + self.cfg.position_noise * jax.random.normal(kp, (2,))
             yaw = yaw + jnp.deg2rad(self.cfg.heading_noise_deg) * jax.random.normal(kh)
-        frac = self._sweep(w, scene, p0, p0 + step)
+        frac = self._sweep(w, scene, p0, p0 + step, moving)
         if self._grid:
             frac = jnp.where(frac < 1.0, 0.0, 1.0)  # grid moves happen whole or not at all
         p1 = p0 + frac * step

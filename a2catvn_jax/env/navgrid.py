@@ -27,9 +27,12 @@ FLOOR_CLEARANCE = 0.02  # geoms entirely below this height (rugs) do not block
 
 
 def obstacle_rects(scene: Scene, body_height: float) -> np.ndarray:
-    """Footprints (xmin, ymin, xmax, ymax) [N, 4] of geoms that block the agent."""
+    """Footprints (xmin, ymin, xmax, ymax) [N, 4] of the static geoms that block the
+    agent (moving geoms block it where each episode places them, `NavEnv`)."""
     footprints = []
     for g in scene.geoms:
+        if g.moving:
+            continue
         lo, hi = geom_aabb(g)
         if hi[2] > FLOOR_CLEARANCE and lo[2] < body_height and g.cls not in ("floor", "ceiling"):
             footprints.append([lo[0], lo[1], hi[0], hi[1]])

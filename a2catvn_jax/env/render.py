@@ -39,6 +39,7 @@ from a2catvn_jax.env.geometry import (
     PATTERN_PLANKS,
     PATTERN_STRIPES,
     Geometry,
+    place,
 )
 
 INF = 1e10
@@ -470,18 +471,24 @@ def render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool = 
     return _render(geom, cam_pos, yaw, tilt, spec, culled and spec.candidates > 0)
 
 
-def render_batch(geometry: Geometry, scene, cam_pos, yaw, tilt, spec: CameraSpec) -> Frame:
+def render_batch(geometry: Geometry, scene, cam_pos, yaw, tilt, spec: CameraSpec, moving=None) -> Frame:
     """Render B cameras exactly. `geometry` is batched over scenes [S, ...], `scene` [B]
     picks each camera's scene; cam_pos [B, 3], yaw/tilt [B] radians. Images [B, H, W].
+    `moving`: None, or (slots, geom ids [K], positions [B, K, 3], rotations [B, K, 3, 3])
+    of geoms whose pose differs per camera (`geometry.place`).
 
     Frames are rendered `spec.chunk(B)` at a time. Tiles of culled frames that fail
     their check are re-traced against every geom (`fallback` flags those frames)."""
     culled = spec.candidates > 0
+    where, gids = (moving[0], moving[1]) if moving is not None else ((), ())
+    poses = (moving[2], moving[3]) if moving is not None else ()
 
     def one(args):
-        s, p, y, t = args
+        s, p, y, t, *placed = args
         g = jax.tree_util.tree_map(lambda a: a[s], geometry)
+        if placed:
+            g = place(g, where, gids, *placed)
         return _render(g, p, y, t, spec, culled, exact=True)
 
     b = cam_pos.shape[0]
-    return jax.lax.map(one, (scene, cam_pos, yaw, tilt), batch_size=spec.chunk(b))
+    return jax.lax.map(one, (scene, cam_pos, yaw, tilt, *poses), batch_size=spec.chunk(b))

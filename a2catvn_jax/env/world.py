@@ -20,7 +20,7 @@ from flax import struct
 
 from a2catvn_jax.config import EnvConfig
 from a2catvn_jax.env import geometry as geometry_lib
-from a2catvn_jax.env import mjx_render, navgrid, rects, render
+from a2catvn_jax.env import mjx_render, mjx_world, navgrid, rects, render
 from a2catvn_jax.env.scenes import generate, mjcf
 from a2catvn_jax.env.scenes.errors import SceneError
 from a2catvn_jax.env.scenes.mjcf import geom_aabb
@@ -152,6 +152,17 @@ class World:
         geometry = geometry_lib.pack(self.models, [s.closed for s in scenes], [s.height for s in scenes],
                                      skip_unsupported=bool(self.native))
         fields = mjx_render.fields_of(self.models)
+        try:
+            self.mjx = mjx_world.MjxWorld(self.models[0], cfg.camera_height)
+        except Exception as e:  # MJX refuses some of a model's settings (a plugin, an unsupported field)
+            raise SceneError(f"{scenes[0].name}: MJX cannot hold this model: {type(e).__name__}: "
+                             f"{' '.join(str(e).split())}") from e
+        moving = self.mjx.moving
+        # The ray caster's families hold the moving geoms too (when it can render them):
+        # each frame places them where its data has them.
+        self._moving = None
+        if moving.size and not self.native:
+            self._moving = (geometry_lib.slots(geometry_lib.take(geometry, 0), moving), moving)
         body = cfg.camera_height + BODY_MARGIN
         self.grids = [navgrid.build(s, cfg.grid_resolution, cfg.agent_radius, body) for s in scenes]
         self.spec = render.CameraSpec(
@@ -168,16 +179,44 @@ class World:
 
     # -- rendering --------------------------------------------------------------------
 
-    def render(self, arrays: WorldArrays, scene, pose) -> render.Frame:
-        """Frames [N] seen from agent poses [N, 4] (x, y, yaw, tilt) in scenes [N] of
-        `arrays` (this world's, or another's of the same layout), with this world's backend."""
-        return self._render(self.backend, arrays.geometry, arrays.mjx, scene, pose)
+    def data(self, arrays: WorldArrays, scene, pose, qpos=None):
+        """`mjx.Data` [N] of agents at poses [N, 4] in scenes [N] of `arrays`, with joint
+        positions qpos [N, nq] (default: the model's reference configuration)."""
+        return self._data(arrays.mjx, scene, pose, qpos)
 
-    def _render(self, backend: str, geometry, fields, scene, pose) -> render.Frame:
+    def scene_data(self, arrays: WorldArrays, scene, qpos=None):
+        """`mjx.Data` [N] of scenes [N] of `arrays` with joint positions qpos [N, nq]
+        (default: the reference configuration), the agent not yet placed (`place_agent`)."""
+        return jax.vmap(self.mjx.data, in_axes=(None, 0, 0))(arrays.mjx, scene, qpos)
+
+    def place_agent(self, data, pose):
+        """`data` [N] with the agents at poses [N, 4]."""
+        return jax.vmap(self.mjx.place_agent)(data, pose)
+
+    def _data(self, fields, scene, pose, qpos=None):
+        return self.place_agent(jax.vmap(self.mjx.data, in_axes=(None, 0, 0))(fields, scene, qpos), pose)
+
+    def render(self, arrays: WorldArrays, scene, pose, data=None) -> render.Frame:
+        """Frames [N] of agents at poses [N, 4] (x, y, yaw, tilt) in scenes [N] of `arrays`
+        (this world's, or another's of the same layout), with this world's backend. The
+        camera and the geoms are where `data` [N] (`World.data`; default: the scenes in
+        their reference configuration) has them."""
+        return self._render(self.backend, arrays.geometry, arrays.mjx, scene, pose, data)
+
+    def _render(self, backend: str, geometry, fields, scene, pose, data=None) -> render.Frame:
+        if data is None:
+            data = self._data(fields, scene, pose)
         if backend == "mjx":
-            return self._mjx.render(fields, geometry.cls, scene, cam_position(pose, self.cfg.camera_height),
-                                    pose[:, 2], pose[:, 3])
-        return render_poses(geometry, self.spec, self.cfg.camera_height, scene, pose)
+            cam_pos, cam_mat = self.mjx.camera_pose(data)
+            return self._mjx.render(fields, geometry.cls, scene, cam_pos, cam_mat, data.geom_xpos, data.geom_xmat)
+        # The ray caster's geometry holds the static geoms' poses (the same as the data's);
+        # the moving geoms are placed from the data.
+        moving = None
+        if self._moving is not None:
+            where, gids = self._moving
+            moving = (where, gids, data.geom_xpos[:, gids], data.geom_xmat[:, gids])
+        cam_pos, _ = self.mjx.camera_pose(data)
+        return render.render_batch(geometry, scene, cam_pos, pose[:, 2], pose[:, 3], self.spec, moving)
 
     def _choose_backend(self, backend: str, geometry, fields) -> tuple[str, str]:
         """(backend in use, a line saying why when `backend` is "auto"). `auto` is measured
@@ -230,13 +269,14 @@ class World:
         scene = jnp.asarray(np.arange(n) % len(self.scenes), jnp.int32)
         pose = jnp.asarray(np.stack([self._random_free_pose(int(k), rng) for k in np.asarray(scene)]), jnp.float32)
         rates = {}
+        data = jax.jit(self._data)(fields, scene, pose)
         for backend in ("raycast", "mjx"):
             fn = jax.jit(functools.partial(self._render, backend, geometry, fields))
-            jax.block_until_ready(fn(scene, pose))
+            jax.block_until_ready(fn(scene, pose, data))
             best = np.inf
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                jax.block_until_ready(fn(scene, pose))
+                jax.block_until_ready(fn(scene, pose, data))
                 best = min(best, time.perf_counter() - t0)
             rates[backend] = n / best
         return rates
@@ -432,12 +472,6 @@ def share_shapes(worlds: list[World]) -> None:
                                            zip(largest, jax.tree_util.tree_leaves(worlds[0].arrays))])
     for w in worlds:
         w.arrays = w.arrays.padded_like(target)
-
-
-def render_poses(geometry, spec: render.CameraSpec, camera_height: float, scene, pose) -> render.Frame:
-    """Frames [N] seen from agent poses [N, 4] (x, y, yaw, tilt) in scenes [N] of a
-    batched `geometry`: the camera at `camera_height` above the pose."""
-    return render.render_batch(geometry, scene, cam_position(pose, camera_height), pose[:, 2], pose[:, 3], spec)
 
 
 def render_in_chunks(render_fn, scene, pose, chunk: int = 64):

@@ -37,8 +37,11 @@ BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_che
 
 # The layout of the saved TrainState. 1: observations, info and the replay's rollouts as
 # dicts with one `done` flag; 2: typed, with `terminated` and `truncated` apart; 3: the
-# environment's info counts the observations in a row that showed the goal.
-FORMAT = 3
+# environment's info counts the observations in a row that showed the goal; 4: the
+# environment's state holds each environment's `mjx.Data`.
+FORMAT = 4
+DATA_FORMAT = 4  # the first format whose environment state holds its mjx.Data
+DERIVED = "derived"  # an upgraded state's leaves that the environment recomputes (`NavEnv.with_data`)
 
 # Keys that did not exist when some runs were written, with the value that reproduces
 # how those runs behaved. A run's saved configuration that lacks one of them takes it.
@@ -104,7 +107,7 @@ class Checkpointer:
         meta = {"update": step, "frames": int(frames), "config": to_dict(cfg), "format": FORMAT}
         self.manager.save(
             step,
-            args=ocp.args.Composite(state=ocp.args.StandardSave(state), meta=ocp.args.JsonSave(meta)),
+            args=ocp.args.Composite(state=ocp.args.StandardSave(_drop_empty(state)), meta=ocp.args.JsonSave(meta)),
             force=True,
         )
         self.manager.wait_until_finished()
@@ -121,7 +124,7 @@ class Checkpointer:
         abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
         written = meta.get("format", 1)
         if written == FORMAT:
-            state = self._restore_state(path, step, ocp.args.StandardRestore(abstract))
+            state = _fill_empty(abstract, self._restore_state(path, step, ocp.args.StandardRestore(_drop_empty(abstract))))
         else:  # an earlier layout: read it as it was written, bring it up to date, reshape it
             raw = self._restore_state(path, step, ocp.args.StandardRestore())
             for upgrade in UPGRADES[written - 1 : FORMAT - 1]:
@@ -227,7 +230,15 @@ def _upgrade_to_3(state: dict, cfg: Config) -> dict:
     return state
 
 
-UPGRADES = (_upgrade_to_2, _upgrade_to_3)  # UPGRADES[k] brings format k + 1 to k + 2
+def _upgrade_to_4(state: dict, cfg: Config) -> dict:
+    """Format 3 -> 4: the environment's state gains its `mjx.Data`, a function of each
+    agent's scene and pose in the static scenes of those runs: left to the environment to
+    recompute after the restore (`NavEnv.with_data`)."""
+    state["env_state"]["data"] = DERIVED
+    return state
+
+
+UPGRADES = (_upgrade_to_2, _upgrade_to_3, _upgrade_to_4)  # UPGRADES[k] brings format k + 1 to k + 2
 
 
 def _has_key(tree, dotted: str) -> bool:
@@ -251,6 +262,21 @@ def with_legacy_values(config: dict) -> dict:
     return config
 
 
+def _drop_empty(tree):
+    """`tree` with its zero-size arrays (which orbax does not write; e.g. the joint
+    positions of a scene without joints in each environment's `mjx.Data`) left out."""
+    return jax.tree_util.tree_map(lambda a: None if np.prod(np.shape(a)) == 0 else a, tree)
+
+
+def _fill_empty(template, restored):
+    """The tree of `template` with the leaves of `restored` (`template` after
+    `_drop_empty`) and zero-size arrays where `_drop_empty` left them out."""
+    kept = iter(jax.tree_util.tree_leaves(restored))
+    leaves = [jax.numpy.zeros(t.shape, t.dtype) if np.prod(t.shape) == 0 else next(kept)
+              for t in jax.tree_util.tree_leaves(template)]
+    return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(template), leaves)
+
+
 def _shaped_like(path, abstract, raw):
     """The tree of `abstract` with each leaf taken from the nested dicts and lists `raw`
     (as orbax reads a checkpoint without a target) at the same keys."""
@@ -258,6 +284,8 @@ def _shaped_like(path, abstract, raw):
     def take(key_path, want):
         node = raw
         for k in key_path:
+            if isinstance(node, str) and node == DERIVED:
+                return jax.numpy.zeros(want.shape, want.dtype)
             name = getattr(k, "name", getattr(k, "key", getattr(k, "idx", None)))
             try:
                 node = node[name]

@@ -24,7 +24,7 @@ from a2catvn_jax.agent.networks import make_networks
 from a2catvn_jax.agent.update import frames_per_update, make_grad_norms, make_update, total_updates
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.errors import UserError
-from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError
+from a2catvn_jax.run.checkpoint import DATA_FORMAT, Checkpointer, CheckpointError
 from a2catvn_jax.run.logger import Interval, MetricsWriter
 from a2catvn_jax.run.pretraining import load_matching
 
@@ -76,6 +76,8 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     if resume:
         template = jax.eval_shape(init, key)
         state, meta = ckpt.restore(template, cfg)
+        if meta.get("format", 1) < DATA_FORMAT:  # written before the state held its mjx.Data
+            state = state.replace(env_state=env.with_data(state.env_state))
         log(f"resumed from update {meta['update']} ({meta['frames']:,} frames)")
     else:
         state = init(key)

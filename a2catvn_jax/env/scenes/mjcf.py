@@ -216,10 +216,12 @@ def geom_aabb(g: Geom) -> tuple[np.ndarray, np.ndarray]:
 def scene_from_mjcf(xml: str, name: str = "user") -> Scene:
     """A Scene from a user's MJCF.
 
-    Every visible geom must be static (in the world body or a body welded to it),
-    of type box/sphere/capsule/ellipsoid (or plane/cylinder/mesh, which only the
-    `mjx` backend renders: the scene then keeps its source and is compiled from it
-    as it is, `native_model`), and named after its semantic class
+    Every visible geom must be static (in the world body or a body welded to it) or
+    on a body that moves on hinge joints or slide joints with a range (`Geom.moving`:
+    each episode draws the joint positions uniformly within their ranges), of type
+    box/sphere/capsule/ellipsoid (or plane/cylinder/mesh, which only the `mjx`
+    backend renders). A scene with moving or plane/cylinder/mesh geoms keeps its
+    source and is compiled from it as it is (`native_model`). Every geom is named after its semantic class
     ("<class>", "<class>_<anything>" or "<class>/<anything>"). Padding geoms ("pad_"
     names) and invisible geoms (alpha 0, no material) are skipped. At least one geom
     must be of class floor. bounds: xy union of the floor geoms' boxes; height: lowest
@@ -267,9 +269,33 @@ def _native_box(m: mujoco.MjModel, d: mujoco.MjData, i: int, where: str, label: 
     return (lo + hi) / 2, (hi - lo) / 2
 
 
+def _on_mocap(m: mujoco.MjModel, body: int) -> bool:
+    """Whether `body` is a mocap body or hangs from one."""
+    while body > 0:
+        if m.body_mocapid[body] >= 0:
+            return True
+        body = int(m.body_parentid[body])
+    return False
+
+
+def _check_joints(m: mujoco.MjModel, where: str) -> None:
+    """Joints must be hinges (any range) or slides with a range: the environment draws
+    each episode's joint positions uniformly within them (`mjx_world.MjxWorld`)."""
+    for j in range(m.njnt):
+        label = f"joint {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or f'#{j}'!r}"
+        jtype = int(m.jnt_type[j])
+        if jtype not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)):
+            raise SceneError(f"{where}{label} has type {mujoco.mjtJoint(jtype).name.removeprefix('mjJNT_').lower()}; "
+                             "scene bodies may move on hinge and slide joints only")
+        if jtype == int(mujoco.mjtJoint.mjJNT_SLIDE) and not m.jnt_limited[j]:
+            raise SceneError(f"{where}{label} is a slide joint without a range; give it one (range=\"lo hi\" in "
+                             "metres): each episode places it uniformly within it")
+
+
 def _scene_of_model(m: mujoco.MjModel, name: str, where: str, source: Optional[tuple[str, str]] = None) -> Scene:
     """The Scene of a compiled user model; `where` starts every error message. A scene
     with plane, cylinder or mesh geoms keeps `source` (its model is compiled from it)."""
+    _check_joints(m, where)
     d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
     geoms: list[Geom] = []
@@ -283,13 +309,13 @@ def _scene_of_model(m: mujoco.MjModel, name: str, where: str, source: Optional[t
         if matid < 0 and m.geom_rgba[i][3] == 0:
             continue
         body = int(m.geom_bodyid[i])
-        if int(m.body_weldid[body]) != 0:
+        if _on_mocap(m, body):
             bname = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body) or f"#{body}"
-            why = "is a mocap body" if m.body_mocapid[body] >= 0 else "can move (it or an ancestor has joints)"
             raise SceneError(
-                f"{where}{label} is not static: its body {bname!r} {why}; scene geoms must be static "
-                "(in the world body or a body welded to it)"
+                f"{where}{label} is on a mocap body ({bname!r}); scene geoms must be static or move on "
+                "hinge and slide joints (the agent is the environment's only mocap body)"
             )
+        moving = int(m.body_weldid[body]) != 0
         gtype = int(m.geom_type[i])
         if gtype not in _TYPE_OF_MJ and gtype not in NATIVE_TYPES:
             raise SceneError(
@@ -311,7 +337,7 @@ def _scene_of_model(m: mujoco.MjModel, name: str, where: str, source: Optional[t
         if gtype in NATIVE_TYPES:
             centre, half = _native_box(m, d, i, where, label)
             geoms.append(Geom(type="box", pos=centre, size=half, rgba=rgba, cls=cls, name=gname,
-                              native=NATIVE_TYPES[gtype]))
+                              native=NATIVE_TYPES[gtype], moving=moving))
             continue
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, d.geom_xmat[i])
@@ -326,6 +352,7 @@ def _scene_of_model(m: mujoco.MjModel, name: str, where: str, source: Optional[t
                 cls=cls,
                 quat=quat,
                 name=gname,
+                moving=moving,
             )
         )
     floors = [g for g in geoms if g.cls == "floor"]
@@ -340,7 +367,7 @@ def _scene_of_model(m: mujoco.MjModel, name: str, where: str, source: Optional[t
     bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
     ceilings = [geom_aabb(g)[0][2] for g in geoms if g.cls == "ceiling"]
     height = float(min(ceilings)) if ceilings else float(max(geom_aabb(g)[1][2] for g in geoms))
-    native = source if any(g.native for g in geoms) else None
+    native = source if any(g.native or g.moving for g in geoms) else None
     return Scene(name=name, geoms=geoms, rooms=[], bounds=bounds, height=height, closed=False, source=native)
 
 

@@ -131,6 +131,10 @@ class Geom:
     # cylinder, plane); the geom is then its world bounding box (`type` box), which is
     # what the occupancy grid and the goals use, and the scene keeps its own model.
     native: Optional[str] = None
+    # The geom's body moves (it or an ancestor has a hinge or slide joint): `pos` and
+    # `quat` are its pose at the model's reference configuration (qpos0). Moving geoms
+    # are not in the occupancy grid; the environment places them per episode.
+    moving: bool = False
 
     def __post_init__(self):
         if self.type not in GEOM_TYPES:
@@ -158,7 +162,7 @@ class Room:
 
 @dataclasses.dataclass
 class Scene:
-    """A static indoor scene.
+    """An indoor scene (static, or with a user's bodies on hinge and slide joints).
 
     bounds: (x0, y0, x1, y1) of the walkable footprint (everything the agent may reach
       lies inside). height: ceiling height (floor top is z=0).
@@ -167,8 +171,8 @@ class Scene:
       occluders. Generated houses are closed; user scenes are not assumed to be.
     source: a user's MJCF ("file", path) or ("xml", text) that the scene's model is
       compiled from as it is (with the agent added), for scenes with geoms of a type
-      only the `mjx` backend renders (`Geom.native`); None: the model is written from
-      `geoms` (`mjcf.scene_to_mjcf`).
+      only the `mjx` backend renders (`Geom.native`) or with moving bodies
+      (`Geom.moving`); None: the model is written from `geoms` (`mjcf.scene_to_mjcf`).
     """
 
     name: str
