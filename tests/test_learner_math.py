@@ -622,6 +622,37 @@ def test_replay_term_settings_reach_the_losses(lstm, overrides):
     np.testing.assert_allclose(float(terms["pixel_control"]), float(np.mean(pc)), rtol=1e-4)
 
 
+def test_aux_every_puts_the_vision_losses_on_every_kth_frame(lstm):
+    """`train.aux_every` 3: the depth and both segmentation losses of `update.loss`
+    are those of the heads on rollout frames 0, 3, 6, ... alone (recomputed here from
+    the network and the loss functions), and differ from the all-frames losses."""
+    cfg = load_config(None, TINY + ["train.aux_every=3"])
+    traj, truth = lstm.rollout(jax.random.PRNGKey(12))
+    targets = update_lib.targets_of(cfg, lstm.env)
+    params, net = lstm.ts.params, lstm.net
+    _, terms = jax.jit(functools.partial(update_lib.loss, cfg, net, targets))(
+        params, traj, truth, lstm.ts.agent.carry, None, jax.random.PRNGKey(0))
+    _, every = jax.jit(lstm.loss)(params, traj, truth, None, jax.random.PRNGKey(0))
+    feats = net.target_stream(params, targets.rgb)
+    conv4, _ = acting.unroll(net, params, feats, traj.inputs, lstm.ts.agent.carry)
+    T1 = traj.inputs.rgb.shape[0]
+    assert T1 > 3
+    pick = np.arange(0, T1, 3)
+    pred = networks.apply_flat(lambda x: net.vn_heads(params, x, ("depth", "segmentation", "target_segmentation")),
+                               conv4[pick], 2)
+    want = {
+        "depth": losses.mse(pred["depth"], truth.depth[pick]),
+        "segmentation": losses.segmentation_loss(pred["segmentation"], truth.segmentation[pick]),
+        "target_segmentation": losses.segmentation_loss(pred["target_segmentation"],
+                                                        targets.segmentation[traj.target][pick]),
+    }
+    for name, value in want.items():
+        np.testing.assert_allclose(float(terms[name]), float(value), rtol=1e-5, err_msg=name)
+        assert abs(float(terms[name]) - float(every[name])) > 1e-7, name
+    for name in ("actor", "critic", "entropy"):
+        np.testing.assert_allclose(float(terms[name]), float(every[name]), rtol=1e-6)
+
+
 def test_segmentation_targets_in_both_encodings(lstm, frame_stack):
     seg = np.random.default_rng(0).integers(0, NUM_CLASSES, (2, 16, 16))
     factor = lstm.cfg.train.aux_downsize

@@ -118,13 +118,17 @@ def frame_truth(cfg: Config, depth, segmentation) -> FrameTruth:
     return FrameTruth(depth, seg)
 
 
-def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: FrameTruth, target_seg) -> dict:
+def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: FrameTruth, target_seg, every: int = 1) -> dict:
     """Depth, observation and target segmentation losses (those with a non-zero weight)
-    of conv4 maps [..., g, g, c4] against `truth` and the targets' segmentation truth
-    `target_seg` [..., a, a(, 3)]."""
+    of conv4 maps [N, ..., g, g, c4] against `truth` and the targets' segmentation
+    truth `target_seg` [N, ..., a, a(, 3)], on every `every`-th entry of the leading axis
+    (a rollout's time axis: `train.aux_every`)."""
     heads = vn_heads_on(cfg)
     if not heads:
         return {}
+    if every > 1:
+        conv4, target_seg = conv4[::every], target_seg[::every]
+        truth = jax.tree_util.tree_map(lambda a: a[::every], truth)
     pred = apply_flat(lambda x: networks.vn_heads(params, x, heads), conv4, conv4.ndim - 3)
     terms = {}
     if "depth" in pred:
@@ -208,7 +212,7 @@ def loss(cfg: Config, networks: Networks, targets: Targets, params: Params, traj
     returns = losses.bootstrapped_returns(traj.reward, traj.done, held[-1], tc.gamma, timeouts(cfg, traj), held[:-1])
     actor, critic, neg_entropy = losses.actor_critic_losses(logits[:-1], values[:-1], traj.action, returns)
     terms = {"actor": actor, "critic": critic, "entropy": neg_entropy}
-    terms.update(vn_terms(cfg, networks, params, conv4, truth, targets.segmentation[traj.target]))
+    terms.update(vn_terms(cfg, networks, params, conv4, truth, targets.segmentation[traj.target], tc.aux_every))
     if replay is not None:
         terms.update(replay_terms(cfg, networks, params, target_feats, replay, key))
     total = sum(getattr(w, name) * value for name, value in terms.items())
