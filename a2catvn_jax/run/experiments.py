@@ -195,6 +195,14 @@ EXPERIMENTS = {e.name: e for e in (
               "also shrinks the actor-critic part of the step; the paper does not discuss this.",
     ),
     Experiment(
+        "aux_every", "the depth and segmentation losses on every rollout frame vs every 4th (train.aux_every)",
+        "image_goals",
+        (Variant("A2CAT-VN"), Variant("A2CAT-VN, vision losses every 4th frame", ("train.aux_every=4",))),
+        paper="The paper computes the depth and segmentation losses on every frame. Every 4th frame divides "
+              "their memory and time by about 4 (what lets thousands of environments train in memory); this "
+              "measures what it costs learning. The A2CAT-VN runs are the aux experiment's.",
+    ),
+    Experiment(
         "grid", "grid actions on small rooms: A2CAT-VN vs A2C", "grid",
         (Variant("A2CAT-VN"), Variant("A2C", NO_VN + NO_UNREAL)),
         cpu_threshold=0.7,
