@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from a2catvn_jax.config import ConfigError, load_config  # noqa: E402
 from a2catvn_jax.env import ACTION_SETS, NavEnv, State  # noqa: E402
 from a2catvn_jax.env.scenes.mjcf import compile_scene, geom_aabb  # noqa: E402
-from a2catvn_jax.env.scenes.spec import CLASS_ID, STRUCTURAL_CLASSES  # noqa: E402
+from a2catvn_jax.env.scenes.spec import CLASS_ID, STRUCTURAL_CLASSES, half_extents  # noqa: E402
 from a2catvn_jax.env.world import BODY_MARGIN, SEGMENTATION_COLORS, World  # noqa: E402
 
 B = 32  # agents per batch
@@ -751,31 +751,7 @@ def test_user_mjcf_with_planes_cylinders_and_meshes(tmp_path):
     assert auto.backend == "mjx" and "only the mjx backend renders" in auto.backend_note
 
 
-MOVING_MJCF = """
-<mujoco model="moving">
-  <compiler angle="radian"/>
-  <worldbody>
-    <geom name="floor" type="box" size="3 2 0.05" pos="0 0 -0.05"/>
-    <geom name="wall_0" type="box" size="0.05 2 1.2" pos="3 0 1.2"/>
-    <geom name="wall_1" type="box" size="0.05 2 1.2" pos="-3 0 1.2"/>
-    <geom name="wall_2" type="box" size="3 0.05 1.2" pos="0 2 1.2"/>
-    <geom name="wall_3" type="box" size="3 0.05 1.2" pos="0 -2 1.2"/>
-    <geom name="table_0" type="box" size="0.4 0.3 0.4" pos="-2 -1.2 0.4"/>
-    <body name="door" pos="0 -0.6 0">
-      <joint name="door_hinge" type="hinge" axis="0 0 1" range="-1.4 1.4"/>
-      <geom name="door_frame_leaf" type="box" size="0.5 0.03 1.0" pos="0.5 0 1.0" rgba="0.6 0.4 0.2 1"/>
-    </body>
-    <body name="drawer" pos="-1.2 1.2 0.4">
-      <joint name="drawer_slide" type="slide" axis="1 0 0" range="-0.6 0.6"/>
-      <geom name="cabinet_0" type="box" size="0.3 0.25 0.4" rgba="0.3 0.3 0.8 1"/>
-    </body>
-    <body name="lamp" pos="1.5 1.0 2.5">
-      <joint name="lamp_slide" type="slide" axis="0 0 1" range="-2.3 -0.5"/>
-      <geom name="lamp_0" type="sphere" size="0.2" rgba="0.9 0.9 0.9 1"/>
-    </body>
-  </worldbody>
-</mujoco>
-"""
+MOVING_MJCF = (Path(__file__).resolve().parent / "data" / "moving_scene.xml").read_text()
 
 
 def test_scene_with_moving_bodies(tmp_path, backend):
@@ -791,7 +767,7 @@ def test_scene_with_moving_bodies(tmp_path, backend):
                         "env.max_episode_steps=6", f"env.render.backend={backend}"]
     env = NavEnv(load_config(None, overrides).env)
     model, mw = env.world.models[0], env.world.mjx
-    assert mw.nq == 3 and len(mw.moving) == 3
+    assert mw.nq == 4 and len(mw.moving) == 5
     actions = _random_actions(env, 3, 60)
 
     def run(key):
@@ -805,7 +781,7 @@ def test_scene_with_moving_bodies(tmp_path, backend):
 
     s0, (pose, qpos, seg, step, depth) = jax.jit(run)(jax.random.PRNGKey(0))
     pose = np.concatenate([np.asarray(s0.info.pose)[None], np.asarray(pose)]).reshape(-1, 4)
-    qpos = np.concatenate([np.asarray(s0.data.qpos)[None], np.asarray(qpos)]).reshape(-1, 3)
+    qpos = np.concatenate([np.asarray(s0.data.qpos)[None], np.asarray(qpos)]).reshape(-1, 4)
     lo, hi = (np.asarray(a) for a in mw.qpos_range)
     assert np.all((qpos >= lo - 1e-6) & (qpos <= hi + 1e-6))
     assert len(np.unique(qpos[:, 0].round(4))) > 40  # a new door angle each episode (8 agents, ~10 episodes each)
@@ -817,8 +793,9 @@ def test_scene_with_moving_bodies(tmp_path, backend):
         d.qpos[:] = q
         mujoco.mj_forward(model, d)
         for g in mw.moving:
-            box = int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_BOX)  # else a sphere
-            half = np.abs(d.geom_xmat[g].reshape(3, 3)) @ model.geom_size[g] if box else model.geom_size[g][0]
+            # The exact box of the geom where MuJoCo puts it (the static geoms' NumPy formula).
+            kind = mujoco.mjtGeom(int(model.geom_type[g])).name.removeprefix("mjGEOM_").lower()
+            half = half_extents(kind, d.geom_xmat[g].reshape(3, 3), model.geom_size[g])
             lo3, hi3 = d.geom_xpos[g] - half, d.geom_xpos[g] + half
             if lo3[2] >= env.cfg.camera_height + BODY_MARGIN:
                 above += 1
@@ -832,7 +809,7 @@ def test_scene_with_moving_bodies(tmp_path, backend):
     w = env.world.arrays
     scene = jnp.zeros(8, jnp.int32)
     start = jnp.tile(jnp.asarray([0.5, -1.2, np.pi / 2, 0.0], jnp.float32), (8, 1))
-    data = env.world.place_agent(env.world.scene_data(w, scene, jnp.zeros((8, 3))), start)
+    data = env.world.place_agent(env.world.scene_data(w, scene, jnp.zeros((8, 4))), start)
     state = s0.replace(info=s0.info.replace(pose=start, step=jnp.zeros(8, jnp.int32), scene=scene), data=data)
     after = jax.jit(env.step)(state, jnp.zeros(8, jnp.int32))  # forward 0.5 m
     y = np.asarray(after.info.pose[:, 1])

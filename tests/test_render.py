@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -595,35 +596,7 @@ def test_planes_cylinders_meshes_and_textures_with_mjx(native):
     assert native_ids and not set(native_ids) & set(members.tolist())
 
 
-MOVING_XML = """
-<mujoco model="moving">
-  <compiler angle="radian"/>
-  <worldbody>
-    <geom name="floor" type="box" size="3 2 0.05" pos="0 0 -0.05"/>
-    <geom name="wall_0" type="box" size="0.05 2 1.2" pos="3 0 1.2"/>
-    <geom name="wall_1" type="box" size="0.05 2 1.2" pos="-3 0 1.2"/>
-    <geom name="wall_2" type="box" size="3 0.05 1.2" pos="0 2 1.2"/>
-    <geom name="wall_3" type="box" size="3 0.05 1.2" pos="0 -2 1.2"/>
-    <body name="door" pos="0 -0.6 0">
-      <joint name="door_hinge" type="hinge" axis="0 0 1" range="-1.4 1.4"/>
-      <geom name="door_frame_leaf" type="box" size="0.5 0.03 1.0" pos="0.5 0 1.0" rgba="0.6 0.4 0.2 1"/>
-    </body>
-    <body name="drawer" pos="-1.5 1.2 0.4">
-      <joint name="drawer_slide" type="slide" axis="1 0 0" range="-0.6 0.6"/>
-      <geom name="cabinet_0" type="box" size="0.3 0.25 0.2" rgba="0.3 0.3 0.8 1"/>
-      <body name="knob" pos="0 -0.3 0">
-        <joint name="knob_turn" type="hinge" axis="0 1 0"/>
-        <geom name="cabinet_knob" type="capsule" size="0.04 0.12" rgba="0.9 0.9 0.1 1"/>
-      </body>
-    </body>
-    <body name="lamp" pos="1.5 1.0 0.8">
-      <joint name="lamp_slide" type="slide" axis="0 0 1" range="-0.3 0.5"/>
-      <geom name="lamp_0" type="ellipsoid" size="0.2 0.1 0.3" euler="0.3 0 0" rgba="0.9 0.5 0.5 1"/>
-      <geom name="lamp_1" type="sphere" size="0.12" pos="0 0 0.4" rgba="0.9 0.9 0.9 1"/>
-    </body>
-  </worldbody>
-</mujoco>
-"""
+MOVING_XML = (Path(__file__).resolve().parent / "data" / "moving_scene.xml").read_text()
 
 
 def test_moving_bodies_render_where_their_data_puts_them():
