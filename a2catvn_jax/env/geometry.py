@@ -26,7 +26,12 @@ _BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
 _SPHERE = int(mujoco.mjtGeom.mjGEOM_SPHERE)
 _CAPSULE = int(mujoco.mjtGeom.mjGEOM_CAPSULE)
 _ELLIPSOID = int(mujoco.mjtGeom.mjGEOM_ELLIPSOID)
+_CYLINDER = int(mujoco.mjtGeom.mjGEOM_CYLINDER)
+_PLANE = int(mujoco.mjtGeom.mjGEOM_PLANE)
 _TYPE_NAMES = {_BOX: "box", _SPHERE: "sphere", _CAPSULE: "capsule", _ELLIPSOID: "ellipsoid"}
+# The MuJoCo type of each family's geoms as `world_half_extents` reads their sizes (spheres are
+# ellipsoids of three equal radii in the "ell" family).
+_FAMILY_TYPE = {"obox": _BOX, "ell": _ELLIPSOID, "cap": _CAPSULE}
 
 # Surface patterns used by the shader, chosen per semantic class.
 PATTERN_PLAIN, PATTERN_CHECKER, PATTERN_STRIPES, PATTERN_PLANKS = 0, 1, 2, 3
@@ -246,13 +251,7 @@ def place(geom: Geometry, where: tuple[tuple[str, int], ...], gids, xpos, xmat) 
         idx = np.array([where[k][1] for k in ks], np.int32)
         fam = families[f]
         pos, rot, size = xpos[ks], xmat[ks], fam.size[idx]
-        if f == "obox":
-            half = jnp.abs(rot) @ size[:, :, None]
-        elif f == "ell":
-            half = jnp.sqrt((rot**2) @ (size[:, :, None] ** 2))
-        else:  # capsule: (radius, half-length) along local z
-            half = (jnp.abs(rot[:, :, 2]) * size[:, 1:2] + size[:, :1])[..., None]
-        half = half[..., 0]
+        half = world_half_extents(np.full(len(ks), _FAMILY_TYPE[f]), rot, size, jnp.zeros(len(ks)))
         families[f] = fam.replace(pos=fam.pos.at[idx].set(pos), rot=fam.rot.at[idx].set(rot),
                                   fp=fam.fp.at[idx].set(jnp.concatenate([pos[:, :2] - half[:, :2], pos[:, :2] + half[:, :2]], -1)))
         g = gids[ks]
@@ -261,3 +260,24 @@ def place(geom: Geometry, where: tuple[tuple[str, int], ...], gids, xpos, xmat) 
             shape_table=geom.shape_table.at[g, :12].set(jnp.concatenate([pos, rot.reshape(-1, 9)], -1)),
         )
     return geom.replace(families=families)
+
+
+def world_half_extents(gtype, rot, size, rbound):
+    """Half-sizes [..., 3] along the world axes of the boxes around geoms of MuJoCo types
+    `gtype` [...] (static ints) with rotations [..., 3, 3], sizes [..., 3] and bounding
+    radii [...]: exact for boxes, spheres, capsules, ellipsoids, cylinders and planes,
+    the bounding sphere for meshes."""
+    axis = rot[..., :, 2]
+    box = jnp.abs(rot) @ size[..., :, None]
+    out = {
+        _BOX: box[..., 0],
+        _SPHERE: jnp.broadcast_to(size[..., :1], size.shape),
+        _CAPSULE: jnp.abs(axis) * size[..., 1:2] + size[..., :1],
+        _ELLIPSOID: jnp.sqrt((rot**2) @ (size[..., :, None] ** 2))[..., 0],
+        _CYLINDER: size[..., :1] * jnp.sqrt(jnp.clip(1.0 - axis**2, 0.0, 1.0)) + size[..., 1:2] * jnp.abs(axis),
+        _PLANE: (jnp.abs(rot[..., :, :2]) @ size[..., :2, None])[..., 0],
+    }
+    result = jnp.broadcast_to(rbound[..., None], size.shape)
+    for t, h in out.items():
+        result = jnp.where((gtype == t)[..., None], h, result)
+    return result

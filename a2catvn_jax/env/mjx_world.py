@@ -28,14 +28,11 @@ import numpy as np
 from mujoco import mjx
 
 from a2catvn_jax.env import camera
-from a2catvn_jax.env.geometry import seen
+from a2catvn_jax.env.geometry import seen, world_half_extents
 from a2catvn_jax.env.mjx_render import AWAY, MjxFields
 from a2catvn_jax.env.scenes.mjcf import AGENT_BODY, AGENT_CAMERA
 
 _HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
-_BOX, _SPHERE, _CAPSULE, _ELLIPSOID, _CYLINDER, _PLANE = (int(t) for t in (
-    mujoco.mjtGeom.mjGEOM_BOX, mujoco.mjtGeom.mjGEOM_SPHERE, mujoco.mjtGeom.mjGEOM_CAPSULE,
-    mujoco.mjtGeom.mjGEOM_ELLIPSOID, mujoco.mjtGeom.mjGEOM_CYLINDER, mujoco.mjtGeom.mjGEOM_PLANE))
 FLOOR_CLEARANCE = 0.02  # metres: geoms entirely below this height never block the agent
 
 
@@ -55,27 +52,6 @@ def agent_pose(pose, camera_height: float):
     quat = jnp.stack([cy * ct, -sy * st, cy * st, sy * ct], -1)  # q_z(yaw) q_y(-tilt)
     right, up, forward = camera.camera_basis(yaw, tilt)
     return pos, quat, jnp.stack([right, up, -forward], -1)  # MuJoCo cameras look along -z
-
-
-def half_extents(gtype, rot, size, rbound):
-    """Half-sizes [..., 3] along the world axes of the boxes around geoms of MuJoCo types
-    `gtype` [...] (static ints) with rotations [..., 3, 3], sizes [..., 3] and bounding
-    radii [...]: exact for boxes, spheres, capsules, ellipsoids, cylinders and planes,
-    the bounding sphere for meshes."""
-    axis = rot[..., :, 2]
-    box = jnp.abs(rot) @ size[..., :, None]
-    out = {
-        _BOX: box[..., 0],
-        _SPHERE: jnp.broadcast_to(size[..., :1], size.shape),
-        _CAPSULE: jnp.abs(axis) * size[..., 1:2] + size[..., :1],
-        _ELLIPSOID: jnp.sqrt((rot**2) @ (size[..., :, None] ** 2))[..., 0],
-        _CYLINDER: size[..., :1] * jnp.sqrt(jnp.clip(1.0 - axis**2, 0.0, 1.0)) + size[..., 1:2] * jnp.abs(axis),
-        _PLANE: (jnp.abs(rot[..., :, :2]) @ size[..., :2, None])[..., 0],
-    }
-    result = jnp.broadcast_to(rbound[..., None], size.shape)
-    for t, h in out.items():
-        result = jnp.where((gtype == t)[..., None], h, result)
-    return result
 
 
 class MjxWorld:
@@ -166,7 +142,7 @@ class MjxWorld:
         clearance lies far away (it never blocks)."""
         xpos = d.geom_xpos[..., self.moving, :]
         xmat = d.geom_xmat[..., self.moving, :, :]
-        half = half_extents(self._moving_type, xmat, self._moving_size, self._moving_rbound)
+        half = world_half_extents(self._moving_type, xmat, self._moving_size, self._moving_rbound)
         lo, hi = xpos - half, xpos + half
         blocks = (hi[..., 2] > FLOOR_CLEARANCE) & (lo[..., 2] < body_height)
         fp = jnp.concatenate([lo[..., :2], hi[..., :2]], -1)

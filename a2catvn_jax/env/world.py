@@ -187,14 +187,17 @@ class World:
     def scene_data(self, arrays: WorldArrays, scene, qpos=None):
         """`mjx.Data` [N] of scenes [N] of `arrays` with joint positions qpos [N, nq]
         (default: the reference configuration), the agent not yet placed (`place_agent`)."""
-        return jax.vmap(self.mjx.data, in_axes=(None, 0, 0))(arrays.mjx, scene, qpos)
+        return self._scene_data(arrays.mjx, scene, qpos)
 
     def place_agent(self, data, pose):
         """`data` [N] with the agents at poses [N, 4]."""
         return jax.vmap(self.mjx.place_agent)(data, pose)
 
+    def _scene_data(self, fields, scene, qpos=None):
+        return jax.vmap(self.mjx.data, in_axes=(None, 0, 0))(fields, scene, qpos)
+
     def _data(self, fields, scene, pose, qpos=None):
-        return self.place_agent(jax.vmap(self.mjx.data, in_axes=(None, 0, 0))(fields, scene, qpos), pose)
+        return self.place_agent(self._scene_data(fields, scene, qpos), pose)
 
     def render(self, arrays: WorldArrays, scene, pose, data=None) -> render.Frame:
         """Frames [N] of agents at poses [N, 4] (x, y, yaw, tilt) in scenes [N] of `arrays`
