@@ -4,7 +4,7 @@
     python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
         [--processes 1 2 | --batch-sizes 16 256 1024 4096]
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
-        [--networks default configs/presets/authors_network.yaml]
+        [--networks default configs/presets/authors_network.yaml] [--conv-impls xla auto matmul]
     python -m a2catvn_jax.benchmark profile [--configs quickstart image_goals_cpu paper] [--updates 5]
         [--networks default configs/presets/authors_network.yaml] [--ops 15]
 
@@ -33,6 +33,8 @@ stream once per distinct target), with both streams computed for every frame, an
 the same network in PyTorch (`pip install torch==2.13.0`), with the ratio. With
 `--networks`, each listed network in turn: `default` (the built-in one, compared with
 PyTorch) or a config file of agent keys such as `configs/presets/authors_network.yaml`.
+With `--conv-impls`, instead, each network with each `agent.conv_impl` listed, timed
+in turns in one process (`--repeats` rounds), so that the ratios come from one run.
 
 `profile`: milliseconds per update of each phase of the training update (rollout and
 the environment alone; the loss forward and forward + backward for plain A2C and for
@@ -58,7 +60,7 @@ import jax
 
 from a2catvn_jax import cli
 from a2catvn_jax.bench.profile import matmul_gflops, profile_update
-from a2catvn_jax.bench.throughput import bench_env, bench_mujoco_gl, bench_network, bench_train
+from a2catvn_jax.bench.throughput import bench_conv_impls, bench_env, bench_mujoco_gl, bench_network, bench_train
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import mjx_render
 from a2catvn_jax.run import workers
@@ -96,6 +98,8 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=320, help="network: (observation, target) pairs per pass")
     parser.add_argument("--targets", type=int, default=16, help="network: distinct targets among them")
     parser.add_argument("--repeats", type=int, default=5, help="network: timed passes")
+    parser.add_argument("--conv-impls", nargs="+", choices=["auto", "xla", "matmul"],
+                        help="network: compare these agent.conv_impl values, timed in turns")
     parser.add_argument("--networks", nargs="+", metavar="NET", default=["default"],
                         help="network, profile: the networks to time, side by side: default (the built-in network) or config "
                              "files of agent keys, e.g. --networks default configs/presets/authors_network.yaml")
@@ -122,6 +126,15 @@ def main(argv=None) -> None:
                       f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
         elif args.what == "profile":
             rows = _profile_table(args, overrides)
+        elif args.what == "network" and args.conv_impls:
+            rows = []
+            for name in args.networks:
+                fps = bench_conv_impls(args.resolution, args.frames, args.targets, args.repeats, args.conv_impls,
+                                       overrides, config=None if name == "default" else name)
+                rows.append({"network": name, "resolution": args.resolution, "frames": args.frames, "fps": fps})
+                print(f"{name}: forward+backward as trained, {args.frames} frames at {args.resolution}x{args.resolution}, "
+                      f"frames/s (median of {args.repeats} rounds): "
+                      + ", ".join(f"conv_impl={impl} {v:.0f}" for impl, v in fps.items()), flush=True)
         elif args.what == "network":
             rows = []
             for name in args.networks:

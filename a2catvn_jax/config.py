@@ -271,6 +271,7 @@ class AgentConfig(_Section):
     core_size: Count = 256  # LSTM cells (or the frame-stack dense layer)
     segmentation_loss: Literal["mse_rgb", "cross_entropy"] = "mse_rgb"  # class colours (paper) or class ids
     space_to_depth: Bool = False  # run conv1 as a conv on stride x stride pixel blocks (the same function)
+    conv_impl: Literal["auto", "xla", "matmul"] = "auto"  # XLA's conv or matrix products (the same function; auto: per layer, the faster on the CPU)
     blind: Bool = False  # the network sees observation and target images as zeros (a control)
     vision_heads: Literal["upsample", "transposed"] = "upsample"  # depth / segmentation head layout
     init: Literal["lecun", "uniform_fan_in"] = "lecun"  # weight initialisation

@@ -228,14 +228,96 @@ def test_conv1_kernels_strides_and_padding(k, s, padding, size):
     module = networks.Conv1(5, False, k, s, padding)
     params = module.init(jax.random.PRNGKey(0), image)
     params = {"params": dict(params["params"], bias=jnp.asarray(rng.normal(size=5).astype(np.float32)))}
-    plain = np.asarray(module.apply(params, image))
     p = params["params"]
     ref = _conv1_numpy(image, np.asarray(p["kernel"], np.float64), np.asarray(p["bias"]), k, s, padding)
-    assert plain.shape == ref.shape
-    assert np.max(np.abs(plain - ref)) < 1e-4
+    for impl in ("xla", "matmul"):
+        got = np.asarray(networks.Conv1(5, False, k, s, padding, impl=impl).apply(params, image))
+        assert got.shape == ref.shape
+        assert np.max(np.abs(got - ref)) < 1e-4, impl
+    plain = np.asarray(module.apply(params, image))
     if k % s == 0:
         fast = np.asarray(networks.Conv1(5, True, k, s, padding).apply(params, image))
         assert np.max(np.abs(fast - plain)) < 1e-4
+
+
+# (kernel, stride, padding, input side, input channels, output channels, form): strided
+# layers with kernels that are and are not multiples of the stride, both matrix-product
+# forms, the padding of each of the network's layers.
+CONV_CASES = [
+    (8, 4, "VALID", 24, 3, 16, None), (7, 4, "VALID", 23, 3, 8, None), (4, 2, "SAME", 11, 16, 32, None),
+    (3, 2, "SAME", 9, 8, 6, None), (3, 1, "SAME", 7, 64, 32, None), (3, 1, "SAME", 10, 32, 1, None),
+    (3, 1, "SAME", 10, 16, 5, "patches"), (3, 1, "SAME", 10, 8, 24, "shift"), (2, 1, ((0, 1), (0, 1)), 6, 32, 40, None),
+    (1, 1, "VALID", 5, 12, 7, None), (4, 2, "VALID", 9, 4, 4, "shift"),
+]
+
+
+@pytest.mark.parametrize("k,s,padding,size,cin,cout,form", CONV_CASES)
+def test_conv2d_by_matrix_products_is_xla_convolution(k, s, padding, size, cin, cout, form):
+    """`conv2d`'s matrix products give `lax.conv_general_dilated`'s outputs and gradients."""
+    rng = np.random.default_rng(k * 1000 + size * 10 + cout)
+    x = jnp.asarray(rng.normal(size=(3, size, size, cin)).astype(np.float32))
+    kernel = jnp.asarray(rng.normal(size=(k, k, cin, cout)).astype(np.float32))
+    pads = networks.conv_padding((size, size), k, s, padding)
+    lax_pads = padding if isinstance(padding, str) else pads
+
+    def ref(x, kernel):
+        return jax.lax.conv_general_dilated(x, kernel, (s, s), lax_pads, dimension_numbers=("NHWC", "HWIO", "NHWC"))
+
+    def mine(x, kernel):
+        return networks.conv2d(x, kernel, s, padding, "matmul", form)
+
+    want, got = ref(x, kernel), mine(x, kernel)
+    assert got.shape == want.shape
+    scale = float(jnp.max(jnp.abs(want)))
+    assert float(jnp.max(jnp.abs(got - want))) < 1e-5 * scale
+    probe = jnp.asarray(rng.normal(size=want.shape).astype(np.float32))
+    g_want = jax.grad(lambda x, w: jnp.sum(ref(x, w) * probe), (0, 1))(x, kernel)
+    g_got = jax.grad(lambda x, w: jnp.sum(mine(x, w) * probe), (0, 1))(x, kernel)
+    for a, b in zip(g_got, g_want):
+        assert float(jnp.max(jnp.abs(a - b))) < 1e-5 * float(jnp.max(jnp.abs(b)))
+    auto = networks.conv2d(x, kernel, s, padding, "auto")
+    assert float(jnp.max(jnp.abs(auto - want))) < 1e-5 * scale
+    with pytest.raises(ValueError, match="conv impl"):
+        networks.conv2d(x, kernel, s, padding, "fast")
+
+
+@pytest.mark.parametrize("preset", [False, True])
+def test_conv_impls_are_the_same_network(preset):
+    """agent.conv_impl changes how the convolutions are computed, not the network: the
+    same parameters, and the same outputs and gradients up to float rounding."""
+    def config(impl):
+        return _preset(84, f"agent.conv_impl={impl}") if preset else load_config(None, [*TINY_LEARNER, f"agent.conv_impl={impl}"])
+
+    size = config("xla").env.render.image_size
+    rng = np.random.default_rng(1)
+    img = jnp.asarray(rng.integers(0, 256, (2, size, size, 3), dtype=np.uint8))
+    target = jnp.asarray(rng.integers(0, 256, (2, size, size, 3), dtype=np.uint8))
+    results = {}
+    for impl in ("xla", "matmul", "auto"):
+        net = networks.make_networks(config(impl), ACTIONS)
+        params = net.init(jax.random.PRNGKey(2))
+
+        def total(params, net=net):
+            out = net.module.apply(params, img, target, jnp.array([1, 2]), jnp.array([0.5, -2.0]))
+            return sum(jnp.sum(jnp.sin(v)) for v in jax.tree_util.tree_leaves(out)), out
+
+        (_, out), grads = jax.value_and_grad(total, has_aux=True)(params)
+        results[impl] = (params, out, grads)
+    params, out, grads = results["xla"]
+
+    def close(a, b, rtol):
+        return float(jnp.max(jnp.abs(a - b))) <= rtol * max(float(jnp.max(jnp.abs(b))), 1e-3)
+
+    for impl in ("matmul", "auto"):
+        p, o, g = results[impl]
+        assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, p, params))
+        assert all(close(a, b, 1e-4) for a, b in zip(jax.tree_util.tree_leaves(o), jax.tree_util.tree_leaves(out))), impl
+        # Gradients of the first layers sum over every pixel of every later layer, where a
+        # rounding difference can move a ReLU input across 0: looser, but far below the
+        # error of a wrong tap or a transposed kernel (the layer tests above are exact to 1e-5).
+        assert all(close(a, b, 2e-2) for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(grads))), impl
+    with pytest.raises(ConfigError, match="agent.conv_impl"):
+        load_config(None, ["agent.conv_impl=fast"])
 
 
 @pytest.mark.parametrize("k,s", [(4, 2), (6, 2), (8, 4), (3, 1)])

@@ -175,3 +175,14 @@ def test_train_benchmark_process_failure_is_one_line(monkeypatch, capsys, tmp_pa
         benchmark.main(["train", "--configs", "paper", "--batch-sizes", "4096"])
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "killed by signal 9 (the kernel's out-of-memory killer" in err[0] and "4096" in err[0]
+
+
+def test_network_benchmark_compares_conv_impls(capsys, tmp_path):
+    """`benchmark network --conv-impls`: every listed implementation timed, one row per network."""
+    out = tmp_path / "rows.json"
+    benchmark.main(["network", "--resolution", "16", "--frames", "4", "--targets", "2", "--repeats", "2",
+                    "--conv-impls", "xla", "matmul", "--json", str(out), "--set", *TINY_LEARNER])
+    (row,) = json.loads(out.read_text())
+    assert row["network"] == "default" and set(row["fps"]) == {"xla", "matmul"}
+    assert all(v > 0 for v in row["fps"].values())
+    assert "conv_impl=matmul" in capsys.readouterr().out

@@ -37,6 +37,15 @@ stride s) it is computed as a (k/s)x(k/s)/1 conv on s x s pixel blocks (s*s*3
 channels) with the same kernel rearranged: the same function, which some backends run
 faster (docs/benchmarks.md).
 
+Convolutions (`agent.conv_impl`, `conv2d`): "xla" runs each as XLA's convolution;
+"matmul" as matrix products (a strided conv as a stride-1 conv on stride x stride
+pixel blocks, then either the kernel offsets' shifted inputs side by side times the
+kernel, or, for layers with few outputs, the input times every offset's kernel and
+the shifted results summed). Both compute the same function. "auto" (the default)
+takes, on XLA's CPU backend, matrix products for layers with few input channels and
+XLA's convolution for the others, the faster of the two for each of this network's
+layers (docs/benchmarks.md); on other backends XLA's convolution.
+
 Initialisation (`agent.init`): "lecun" gives conv and dense kernels LeCun-normal values,
 the policy head orthogonal(0.01) and the LSTM flax's defaults; "uniform_fan_in" draws
 every conv, transposed-conv and dense kernel (the policy head's too) uniformly in
@@ -77,6 +86,95 @@ def space_to_depth(x, block: int):
     n, h, w, c = x.shape
     x = x.reshape(n, h // block, block, w // block, block, c)
     return x.transpose(0, 1, 3, 2, 4, 5).reshape(n, h // block, w // block, block * block * c)
+
+
+_DIMS = ("NHWC", "HWIO", "NHWC")
+
+
+def conv_padding(size: tuple, kernel: int, stride: int, padding) -> tuple:
+    """Explicit ((top, bottom), (left, right)) padding: "VALID", "SAME" (as `lax`: half
+    at the top/left, the rest at the bottom/right, for ceil(n / stride) outputs), or
+    already explicit."""
+    if not isinstance(padding, str):
+        return tuple(tuple(p) for p in padding)
+    if padding.upper() == "VALID":
+        return ((0, 0), (0, 0))
+    pads = []
+    for n in size:
+        total = max((-(-n // stride) - 1) * stride + kernel - n, 0)
+        pads.append((total // 2, total - total // 2))
+    return tuple(pads)
+
+
+# `conv2d`'s "auto" on the CPU, from timing this package's layers both ways in its two
+# networks at 32 and 84 px (docs/benchmarks.md): matrix products for layers whose input
+# has at most MATMUL_MAX_CHANNELS channels (counted on stride x stride pixel blocks for
+# a strided layer: conv1, conv4, the heads' upsampling, the depth output) and for
+# strided layers on at least MATMUL_STRIDED_CHANNELS channels (the authors' conv2 and
+# conv3); XLA's convolution for the others (conv2 on 16 channels, the 3x3 layers on 64).
+MATMUL_MAX_CHANNELS = 48
+MATMUL_STRIDED_CHANNELS = 32
+
+
+def conv2d(x, kernel, stride: int = 1, padding="VALID", impl: str = "auto", form=None):
+    """2-D convolution of x [N, H, W, C] by kernel [k, k, C, F] (square kernel and
+    stride; padding as `conv_padding`) -> [N, H', W', F], by XLA's convolution ("xla"),
+    by matrix products ("matmul", in the `form` "patches" or "shift", by default the one
+    the layer's shape suits; see the module docstring), or "auto": on the CPU the one of
+    the two that the layer's shape suits (see MATMUL_MAX_CHANNELS), XLA's convolution
+    on other backends."""
+    k = kernel.shape[0]
+    pads = conv_padding(x.shape[1:3], k, stride, padding)
+    if impl == "auto":
+        c = x.shape[-1]
+        suits = stride * stride * c <= MATMUL_MAX_CHANNELS or (stride > 1 and c >= MATMUL_STRIDED_CHANNELS)
+        impl = "matmul" if suits and jax.default_backend() == "cpu" else "xla"
+    if impl == "xla":
+        return jax.lax.conv_general_dilated(x, kernel, (stride, stride), pads, dimension_numbers=_DIMS)
+    if impl != "matmul":
+        raise ValueError(f"conv impl must be 'auto', 'xla' or 'matmul', got {impl!r}")
+    if any(pads[0] + pads[1]):
+        x = jnp.pad(x, ((0, 0), pads[0], pads[1], (0, 0)))
+    n, h, w, c = x.shape
+    f = kernel.shape[-1]
+    oh, ow = (h - k) // stride + 1, (w - k) // stride + 1
+    if stride > 1:  # a stride-1 conv of ceil(k / s) x ceil(k / s) on s x s pixel blocks
+        s, m = stride, -(-k // stride)
+        kernel = jnp.pad(kernel, ((0, m * s - k), (0, m * s - k), (0, 0), (0, 0)))
+        kernel = kernel.reshape(m, s, m, s, c, f).transpose(0, 2, 1, 3, 4, 5).reshape(m, m, s * s * c, f)
+        hh, ww = s * (oh + m - 1), s * (ow + m - 1)
+        x = x[:, :hh, :ww]
+        if x.shape[1] < hh or x.shape[2] < ww:  # the zero taps of the padded kernel
+            x = jnp.pad(x, ((0, 0), (0, hh - x.shape[1]), (0, ww - x.shape[2]), (0, 0)))
+        x, k, c = space_to_depth(x, s), m, s * s * c
+    x = x[:, : oh + k - 1, : ow + k - 1]
+    taps = [(i, j) for i in range(k) for j in range(k)]
+    if form is None:
+        form = "shift" if 4 * f <= c else "patches"
+    if form == "shift":  # few outputs: every offset's outputs at every input pixel, shifted and summed
+        z = jnp.dot(x, kernel.transpose(2, 0, 1, 3).reshape(c, k * k * f)).reshape(n, oh + k - 1, ow + k - 1, k * k, f)
+        return sum(z[:, i : i + oh, j : j + ow, i * k + j] for i, j in taps)
+    patches = jnp.concatenate([x[:, i : i + oh, j : j + ow] for i, j in taps], -1) if k > 1 else x
+    return jnp.dot(patches, kernel.reshape(k * k * c, f))
+
+
+class Conv(nn.Module):
+    """`flax.linen.Conv` for square kernels and strides (the same parameters, "kernel"
+    [k, k, C, F] and "bias" [F]), computed by `conv2d` with implementation `impl`."""
+
+    features: int
+    kernel_size: int
+    stride: int = 1
+    padding: Any = "SAME"
+    kernel_init: Any = nn.initializers.lecun_normal()
+    impl: str = "auto"
+
+    @nn.compact
+    def __call__(self, x):
+        k = self.kernel_size
+        kernel = self.param("kernel", self.kernel_init, (k, k, x.shape[-1], self.features))
+        bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        return conv2d(x, kernel, self.stride, self.padding, self.impl) + bias
 
 
 def fan_in_uniform(transposed: bool = False):
@@ -136,6 +234,7 @@ class Conv1(nn.Module):
     stride: int = 4
     padding: str = "same"
     kernel_init: Any = nn.initializers.lecun_normal()
+    impl: str = "auto"
 
     @nn.compact
     def __call__(self, image):
@@ -150,14 +249,13 @@ class Conv1(nn.Module):
         else:  # only the rows and columns the windows reach (a multiple of the stride when the kernel is)
             oh, ow = (h - k) // s + 1, (w - k) // s + 1
             x = x[:, : (oh - 1) * s + k, : (ow - 1) * s + k]
-        dims = ("NHWC", "HWIO", "NHWC")
         if self.space_to_depth:
             m = k // s
             x = space_to_depth(x, s)
             kk = kernel.reshape(m, s, m, s, c, self.features).transpose(0, 2, 1, 3, 4, 5).reshape(m, m, s * s * c, self.features)
-            y = jax.lax.conv_general_dilated(x, kk, (1, 1), "VALID", dimension_numbers=dims)
+            y = conv2d(x, kk, 1, "VALID", self.impl)
         else:
-            y = jax.lax.conv_general_dilated(x, kernel, (s, s), "VALID", dimension_numbers=dims)
+            y = conv2d(x, kernel, s, "VALID", self.impl)
         return y + bias
 
 
@@ -176,11 +274,11 @@ class A2CATNet(nn.Module):
         c1, c2, c3, c4 = cfg.conv_channels
         k1, k2, k3, k4 = cfg.conv_kernels
         s1, s2, s3, s4 = cfg.conv_strides
-        pad = cfg.conv_padding.upper()
-        self.conv1 = Conv1(c1, cfg.space_to_depth, k1, s1, cfg.conv_padding, init.kernel)
-        self.conv2 = nn.Conv(c2, (k2, k2), (s2, s2), padding=pad, kernel_init=init.kernel)
-        self.conv3 = nn.Conv(c3, (k3, k3), (s3, s3), padding=pad, kernel_init=init.kernel)
-        self.conv4 = nn.Conv(c4, (k4, k4), (s4, s4), padding=pad, kernel_init=init.kernel)
+        pad, impl = cfg.conv_padding.upper(), cfg.conv_impl
+        self.conv1 = Conv1(c1, cfg.space_to_depth, k1, s1, cfg.conv_padding, init.kernel, impl)
+        self.conv2 = Conv(c2, k2, s2, pad, init.kernel, impl)
+        self.conv3 = Conv(c3, k3, s3, pad, init.kernel, impl)
+        self.conv4 = Conv(c4, k4, s4, pad, init.kernel, impl)
         self.dense = nn.Dense(cfg.dense_size, kernel_init=init.kernel)
         if cfg.memory == "lstm":
             self.lstm = nn.OptimizedLSTMCell(cfg.core_size, **init.lstm)
@@ -192,8 +290,8 @@ class A2CATNet(nn.Module):
         g = self.pc_grid
         self.pc_half = -(-g // 2)
         self.pc_dense = nn.Dense(self.pc_half * self.pc_half * _PC_CHANNELS, kernel_init=init.kernel)
-        self.pc_value = Upsample2x(1, init.kernel)
-        self.pc_advantage = Upsample2x(self.num_actions, init.kernel)
+        self.pc_value = Upsample2x(1, init.kernel, impl)
+        self.pc_advantage = Upsample2x(self.num_actions, init.kernel, impl)
         # Reward prediction.
         self.rp = nn.Dense(REWARD_CLASSES, kernel_init=init.kernel)
         # Visual-navigation auxiliary heads.
@@ -203,7 +301,7 @@ class A2CATNet(nn.Module):
             self.vn = TransposedVNHeads(outputs, self.aux_size, transposed_heads_offset(cfg, self.image_size, self.aux_downsize),
                                         init.transposed)
         else:
-            self.vn = VNHeads(outputs, self.aux_size, init.kernel)
+            self.vn = VNHeads(outputs, self.aux_size, init.kernel, impl)
 
     # -- sizes ----------------------------------------------------------------------
 
@@ -301,10 +399,11 @@ class Upsample2x(nn.Module):
 
     features: int
     kernel_init: Any = nn.initializers.lecun_normal()
+    impl: str = "auto"
 
     @nn.compact
     def __call__(self, x):
-        y = nn.Conv(4 * self.features, (2, 2), padding=((0, 1), (0, 1)), kernel_init=self.kernel_init)(x)
+        y = Conv(4 * self.features, 2, 1, ((0, 1), (0, 1)), self.kernel_init, self.impl)(x)
         return depth_to_space(y, 2)
 
 
@@ -323,6 +422,7 @@ class VNHeads(nn.Module):
     outputs: dict  # head -> output channels
     size: int
     kernel_init: Any = nn.initializers.lecun_normal()
+    impl: str = "auto"
     HIDDEN = {"depth": 32, "segmentation": 64, "target_segmentation": 64}
 
     @nn.compact
@@ -331,13 +431,13 @@ class VNHeads(nn.Module):
         kernels = {h: self.param(f"{h}_up_kernel", self.kernel_init, (2, 2, c_in, 4 * n))
                    for h, n in self.HIDDEN.items()}
         biases = {h: self.param(f"{h}_up_bias", nn.initializers.zeros, (4 * n,)) for h, n in self.HIDDEN.items()}
-        finals = {h: nn.Conv(self.outputs[h], (3, 3), padding="SAME", kernel_init=self.kernel_init, name=f"{h}_out")
+        finals = {h: Conv(self.outputs[h], 3, 1, "SAME", self.kernel_init, self.impl, name=f"{h}_out")
                   for h in self.HIDDEN}
         if not heads:
             return {}
         kernel = jnp.concatenate([kernels[h] for h in heads], axis=-1)
         bias = jnp.concatenate([biases[h] for h in heads])
-        y = jax.lax.conv_general_dilated(x, kernel, (1, 1), ((0, 1), (0, 1)), dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        y = conv2d(x, kernel, 1, ((0, 1), (0, 1)), self.impl)
         y = nn.relu(y + bias)
         out, start = {}, 0
         for h in heads:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 
 import jax
@@ -140,6 +141,37 @@ def bench_train(name: str, overrides, updates: int) -> dict:
     env_fps = _env_rollout_fps(env, cfg.train.rollout_length, max(2, updates))
     return {"config": name, "batch": env.num_envs, "resolution": cfg.env.render.image_size, "train_fps": fps,
             "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps, **memory}
+
+
+def bench_conv_impls(resolution: int, frames: int, targets: int, rounds: int, impls, overrides=(), config=None) -> dict:
+    """Forward+backward frames/s of the network as the update runs it (see
+    `bench_network`) with each `agent.conv_impl` of `impls`, compiled first and then
+    timed in turns, one pass of each per round, so that a slow spell of a shared machine
+    slows all of them: {impl: median frames/s over the rounds}."""
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
+    rgb = jax.random.randint(k1, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
+    target_rgb = jax.random.randint(k2, (targets, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
+    index = jnp.arange(frames) % targets
+    steps = {}
+    for impl in impls:
+        net = make_networks(load_config(config, [f"env.render.image_size={resolution}", *overrides,
+                                                 f"agent.conv_impl={impl}"]), 8)
+        params = net.init(k3)
+
+        def loss(params, rgb, target_rgb, target_index, net=net):
+            conv4, feats = net.encode(params, rgb, net.target_stream(params, target_rgb)[target_index])
+            return jnp.mean(feats**2) + sum(jnp.mean(h**2) for h in net.vn_heads(params, conv4).values())
+
+        grad = jax.jit(jax.grad(loss))
+        jax.block_until_ready(grad(params, rgb, target_rgb, index))
+        steps[impl] = functools.partial(grad, params, rgb, target_rgb, index)
+    times = {impl: [] for impl in impls}
+    for _ in range(rounds):
+        for impl, step in steps.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(step())
+            times[impl].append(time.perf_counter() - t0)
+    return {impl: frames / float(np.median(t)) for impl, t in times.items()}
 
 
 def bench_network(resolution: int, frames: int, targets: int, repeats: int, overrides=(), config=None,
