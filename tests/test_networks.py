@@ -286,7 +286,7 @@ def test_conv_impls_are_the_same_network(preset):
     """agent.conv_impl changes how the convolutions are computed, not the network: the
     same parameters, and the same outputs and gradients up to float rounding."""
     def config(impl):
-        return _preset(84, f"agent.conv_impl={impl}") if preset else load_config(None, [*TINY_LEARNER, f"agent.conv_impl={impl}"])
+        return _preset(48, f"agent.conv_impl={impl}") if preset else load_config(None, [*TINY_LEARNER, f"agent.conv_impl={impl}"])
 
     size = config("xla").env.render.image_size
     rng = np.random.default_rng(1)
@@ -301,7 +301,7 @@ def test_conv_impls_are_the_same_network(preset):
             out = net.module.apply(params, img, target, jnp.array([1, 2]), jnp.array([0.5, -2.0]))
             return sum(jnp.sum(jnp.sin(v)) for v in jax.tree_util.tree_leaves(out)), out
 
-        (_, out), grads = jax.value_and_grad(total, has_aux=True)(params)
+        (_, out), grads = jax.jit(jax.value_and_grad(total, has_aux=True))(params)
         results[impl] = (params, out, grads)
     params, out, grads = results["xla"]
 
