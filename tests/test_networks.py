@@ -279,6 +279,8 @@ def test_conv2d_by_matrix_products_is_xla_convolution(k, s, padding, size, cin, 
     assert float(jnp.max(jnp.abs(auto - want))) < 1e-5 * scale
     with pytest.raises(ValueError, match="conv impl"):
         networks.conv2d(x, kernel, s, padding, "fast")
+    with pytest.raises(ValueError, match="conv form"):
+        networks.conv2d(x, kernel, s, padding, "matmul", "im2col")
 
 
 @pytest.mark.parametrize("preset", [False, True])

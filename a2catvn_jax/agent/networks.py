@@ -151,6 +151,8 @@ def conv2d(x, kernel, stride: int = 1, padding="VALID", impl: str = "auto", form
     taps = [(i, j) for i in range(k) for j in range(k)]
     if form is None:
         form = "shift" if 4 * f <= c else "patches"
+    elif form not in ("shift", "patches"):
+        raise ValueError(f"conv form must be 'patches' or 'shift', got {form!r}")
     if form == "shift":  # few outputs: every offset's outputs at every input pixel, shifted and summed
         z = jnp.dot(x, kernel.transpose(2, 0, 1, 3).reshape(c, k * k * f)).reshape(n, oh + k - 1, ow + k - 1, k * k, f)
         return sum(z[:, i : i + oh, j : j + ow, i * k + j] for i, j in taps)
