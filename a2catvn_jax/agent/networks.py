@@ -42,9 +42,9 @@ Convolutions (`agent.conv_impl`, `conv2d`): "xla" runs each as XLA's convolution
 pixel blocks, then either the kernel offsets' shifted inputs side by side times the
 kernel, or, for layers with few outputs, the input times every offset's kernel and
 the shifted results summed). Both compute the same function. "auto" (the default)
-takes, on XLA's CPU backend, matrix products for layers with few input channels and
-XLA's convolution for the others, the faster of the two for each of this network's
-layers (docs/benchmarks.md); on other backends XLA's convolution.
+takes, on XLA's CPU backend, per layer by its shape the one of the two that was faster
+for this network's layers (`MATMUL_MAX_CHANNELS`, docs/benchmarks.md); on other
+backends XLA's convolution.
 
 Initialisation (`agent.init`): "lecun" gives conv and dense kernels LeCun-normal values,
 the policy head orthogonal(0.01) and the LSTM flax's defaults; "uniform_fan_in" draws
@@ -116,6 +116,25 @@ MATMUL_MAX_CHANNELS = 48
 MATMUL_STRIDED_CHANNELS = 32
 
 
+def on_blocks(x, kernel, stride: int):
+    """A VALID stride-s convolution of x [N, H, W, C] by kernel [k, k, C, F] as a stride-1
+    one on s x s pixel blocks: (x's blocks [N, H', W', s*s*C], the kernel [m, m, s*s*C, F],
+    m = ceil(k / s)), the same function. The kernel is zero-padded to m*s taps; x is cropped
+    to the rows and columns the windows reach, or zero-padded up to them (they meet the
+    padded kernel's zero taps)."""
+    s, k = stride, kernel.shape[0]
+    n, h, w, c = x.shape
+    f, m = kernel.shape[-1], -(-k // stride)
+    if m * s > k:
+        kernel = jnp.pad(kernel, ((0, m * s - k), (0, m * s - k), (0, 0), (0, 0)))
+    kernel = kernel.reshape(m, s, m, s, c, f).transpose(0, 2, 1, 3, 4, 5).reshape(m, m, s * s * c, f)
+    hh, ww = s * ((h - k) // s + m), s * ((w - k) // s + m)
+    x = x[:, :hh, :ww]
+    if x.shape[1] < hh or x.shape[2] < ww:
+        x = jnp.pad(x, ((0, 0), (0, hh - x.shape[1]), (0, ww - x.shape[2]), (0, 0)))
+    return space_to_depth(x, s), kernel
+
+
 def conv2d(x, kernel, stride: int = 1, padding="VALID", impl: str = "auto", form=None):
     """2-D convolution of x [N, H, W, C] by kernel [k, k, C, F] (square kernel and
     stride; padding as `conv_padding`) -> [N, H', W', F], by XLA's convolution ("xla"),
@@ -135,18 +154,11 @@ def conv2d(x, kernel, stride: int = 1, padding="VALID", impl: str = "auto", form
         raise ValueError(f"conv impl must be 'auto', 'xla' or 'matmul', got {impl!r}")
     if any(pads[0] + pads[1]):
         x = jnp.pad(x, ((0, 0), pads[0], pads[1], (0, 0)))
-    n, h, w, c = x.shape
-    f = kernel.shape[-1]
+    n, h, w, _ = x.shape
     oh, ow = (h - k) // stride + 1, (w - k) // stride + 1
-    if stride > 1:  # a stride-1 conv of ceil(k / s) x ceil(k / s) on s x s pixel blocks
-        s, m = stride, -(-k // stride)
-        kernel = jnp.pad(kernel, ((0, m * s - k), (0, m * s - k), (0, 0), (0, 0)))
-        kernel = kernel.reshape(m, s, m, s, c, f).transpose(0, 2, 1, 3, 4, 5).reshape(m, m, s * s * c, f)
-        hh, ww = s * (oh + m - 1), s * (ow + m - 1)
-        x = x[:, :hh, :ww]
-        if x.shape[1] < hh or x.shape[2] < ww:  # the zero taps of the padded kernel
-            x = jnp.pad(x, ((0, 0), (0, hh - x.shape[1]), (0, ww - x.shape[2]), (0, 0)))
-        x, k, c = space_to_depth(x, s), m, s * s * c
+    if stride > 1:
+        x, kernel = on_blocks(x, kernel, stride)
+    k, c, f = kernel.shape[0], kernel.shape[2], kernel.shape[3]
     x = x[:, : oh + k - 1, : ow + k - 1]
     taps = [(i, j) for i in range(k) for j in range(k)]
     if form is None:
@@ -252,10 +264,7 @@ class Conv1(nn.Module):
             oh, ow = (h - k) // s + 1, (w - k) // s + 1
             x = x[:, : (oh - 1) * s + k, : (ow - 1) * s + k]
         if self.space_to_depth:
-            m = k // s
-            x = space_to_depth(x, s)
-            kk = kernel.reshape(m, s, m, s, c, self.features).transpose(0, 2, 1, 3, 4, 5).reshape(m, m, s * s * c, self.features)
-            y = conv2d(x, kk, 1, "VALID", self.impl)
+            y = conv2d(*on_blocks(x, kernel, s), 1, "VALID", self.impl)
         else:
             y = conv2d(x, kernel, s, "VALID", self.impl)
         return y + bias

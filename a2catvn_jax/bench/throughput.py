@@ -143,28 +143,34 @@ def bench_train(name: str, overrides, updates: int) -> dict:
             "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps, **memory}
 
 
+def _network_pass(resolution: int, frames: int, overrides=(), config=None):
+    """What `benchmark network` times: (parameters, the jitted gradient of a loss on the
+    conv base's features and the VN heads' outputs, observations [frames], target images
+    [frames]); the gradient takes (params, observations, targets, target index per frame)."""
+    net = make_networks(load_config(config, [f"env.render.image_size={resolution}", *overrides]), 8)
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
+    rgb = jax.random.randint(k1, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
+    target_rgb = jax.random.randint(k2, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
+
+    def loss(params, rgb, target_rgb, target_index):
+        target_feats = net.target_stream(params, target_rgb)
+        conv4, feats = net.encode(params, rgb, target_feats[target_index])
+        heads = net.vn_heads(params, conv4)
+        return jnp.mean(feats**2) + sum(jnp.mean(h**2) for h in heads.values())
+
+    return net.init(k3), jax.jit(jax.grad(loss)), rgb, target_rgb
+
+
 def bench_conv_impls(resolution: int, frames: int, targets: int, rounds: int, impls, overrides=(), config=None) -> dict:
     """Forward+backward frames/s of the network as the update runs it (see
     `bench_network`) with each `agent.conv_impl` of `impls`, compiled first and then
     timed in turns, one pass of each per round, so that a slow spell of a shared machine
     slows all of them: {impl: median frames/s over the rounds}."""
-    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
-    rgb = jax.random.randint(k1, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
-    target_rgb = jax.random.randint(k2, (targets, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
-    index = jnp.arange(frames) % targets
     steps = {}
     for impl in impls:
-        net = make_networks(load_config(config, [f"env.render.image_size={resolution}", *overrides,
-                                                 f"agent.conv_impl={impl}"]), 8)
-        params = net.init(k3)
-
-        def loss(params, rgb, target_rgb, target_index, net=net):
-            conv4, feats = net.encode(params, rgb, net.target_stream(params, target_rgb)[target_index])
-            return jnp.mean(feats**2) + sum(jnp.mean(h**2) for h in net.vn_heads(params, conv4).values())
-
-        grad = jax.jit(jax.grad(loss))
-        jax.block_until_ready(grad(params, rgb, target_rgb, index))
-        steps[impl] = functools.partial(grad, params, rgb, target_rgb, index)
+        params, grad, rgb, target_rgb = _network_pass(resolution, frames, [*overrides, f"agent.conv_impl={impl}"], config)
+        steps[impl] = functools.partial(grad, params, rgb, target_rgb[:targets], jnp.arange(frames) % targets)
+        jax.block_until_ready(steps[impl]())
     times = {impl: [] for impl in impls}
     for _ in range(rounds):
         for impl, step in steps.items():
@@ -180,19 +186,7 @@ def bench_network(resolution: int, frames: int, targets: int, repeats: int, over
     both streams per frame, and PyTorch (None when torch is not installed or `torch` is
     False; it is the default network). `config` (config files, e.g. a preset of agent
     keys) and `overrides` may set `agent.*` keys (e.g. agent.space_to_depth=true)."""
-    net = make_networks(load_config(config, [f"env.render.image_size={resolution}", *overrides]), 8)
-    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
-    rgb = jax.random.randint(k1, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
-    target_rgb = jax.random.randint(k2, (frames, resolution, resolution, 3), 0, 256).astype(jnp.uint8)
-    params = net.init(k3)
-
-    def loss(params, rgb, target_rgb, target_index):
-        target_feats = net.target_stream(params, target_rgb)
-        conv4, feats = net.encode(params, rgb, target_feats[target_index])
-        heads = net.vn_heads(params, conv4)
-        return jnp.mean(feats**2) + sum(jnp.mean(h**2) for h in heads.values())
-
-    grad = jax.jit(jax.grad(loss))
+    params, grad, rgb, target_rgb = _network_pass(resolution, frames, overrides, config)
 
     def fps(*args):
         jax.block_until_ready(grad(params, *args))
