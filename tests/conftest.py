@@ -25,8 +25,11 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "-1"
 
 # Compile time is most of the suite's time, and the tests' programs are tiny: XLA's CPU
 # backend compiles them without LLVM's optimisation passes (about 40% less compile time,
-# the programs about 2x slower). It changes how fast the code runs, not what it computes.
-# Benchmarks and training outside the tests keep the default.
-_FAST_COMPILE = "--xla_backend_optimization_level=0"
-if _FAST_COMPILE not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FAST_COMPILE}".strip()
+# the programs about 2x slower) and emits its fused loops the older way instead of through
+# its fusion emitters (the tiny learner's update: compile 5.4 s instead of 12 s, runs 64-70
+# ms instead of 51-61). Neither changes what the code computes, only how fast it compiles
+# and runs. Benchmarks and training outside the tests keep the defaults.
+_FAST_COMPILE = ("--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false")
+for _flag in _FAST_COMPILE:
+    if _flag not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}".strip()

@@ -17,6 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import conftest
 import jax
 import numpy as np
 import pytest
@@ -78,7 +79,8 @@ def test_agent_beats_random_policy(tmp_path):
     """Training runs in its own process with XLA's default compiler options: this test's
     time is the program's run time, not its compile time (tests/conftest.py)."""
     cfg = load_config(None, TASK)
-    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", "").replace("--xla_backend_optimization_level=0", ""))
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    env = dict(os.environ, XLA_FLAGS=" ".join(f for f in flags if f not in conftest._FAST_COMPILE))
     proc = subprocess.run([sys.executable, "-c", TRAIN, json.dumps(TASK), str(tmp_path), str(UPDATES)], env=env,
                           cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
