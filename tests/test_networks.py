@@ -92,7 +92,8 @@ def test_default_config_is_the_previous_network():
 
 
 # image size -> (conv1, conv2, conv3 = conv4 sides), worked out from the kernels and strides
-# (7/4, 4/2, 4/2, 1/1): valid n -> (n - k) // s + 1; same (32 px) n -> ceil(n / s).
+# (7/4, 4/2, 4/2, 1/1): valid n -> (n - k) // s + 1; same (32 px) n -> ceil(n / s). The
+# target stream gives what targets add to conv3 (64 channels).
 CONV_SIDES = {172: (42, 20, 9), 84: (20, 9, 3), 48: (11, 4, 1), 32: (8, 4, 2)}
 
 
@@ -105,7 +106,7 @@ def test_authors_preset_shapes(size):
     shapes = _shapes(networks.make_networks(cfg, ACTIONS), size)
     aux, grid = size // cfg.train.aux_downsize, size // cfg.train.pixel_control_cell
     assert shapes == {
-        "target": (2, s2, s2, 32), "conv4": (2, s4, s4, 32), "features": (2, 512), "core": (2, 512),
+        "target": (2, s4, s4, 64), "conv4": (2, s4, s4, 32), "features": (2, 512), "core": (2, 512),
         "pixel_control": (2, grid, grid, ACTIONS), "reward_prediction": (2, 3),
         "depth": (2, aux, aux), "segmentation": (2, aux, aux, 3), "target_segmentation": (2, aux, aux, 3)}
 
@@ -249,6 +250,36 @@ CONV_CASES = [
     (3, 1, "SAME", 10, 16, 5, "patches"), (3, 1, "SAME", 10, 8, 24, "shift"), (2, 1, ((0, 1), (0, 1)), 6, 32, 40, None),
     (1, 1, "VALID", 5, 12, 7, None), (4, 2, "VALID", 9, 4, 4, "shift"),
 ]
+
+
+@pytest.mark.parametrize("k,s,padding,impl", [(3, 1, "SAME", "xla"), (3, 1, "SAME", "matmul"), (4, 2, "VALID", "auto")])
+def test_split_conv_is_the_conv_of_the_concatenation(k, s, padding, impl):
+    """conv3 (`SplitConv`): the observation part plus the target part, computed once per
+    distinct target and gathered, is XLA's convolution of the two maps side by side,
+    with the same parameters; so are its gradients."""
+    a = jax.random.normal(jax.random.PRNGKey(0), (6, 9, 9, 5))
+    b = jax.random.normal(jax.random.PRNGKey(1), (3, 9, 9, 7))
+    index = jnp.array([2, 0, 1, 1, 0, 2])
+    split = networks.SplitConv(4, k, s, padding, 5, 7, impl=impl)
+    params = split.init(jax.random.PRNGKey(2), a, method=lambda m, x: m.observation(x))
+    params = jax.tree_util.tree_map(lambda p: p + 0.1, params)  # a bias that is not zero
+    kernel, bias = params["params"]["kernel"], params["params"]["bias"]
+    assert kernel.shape == (k, k, 12, 4) and bias.shape == (4,)
+
+    def by_parts(p, a, b):
+        return split.apply(p, a, method=split.observation) + split.apply(p, b, method=split.target)[index]
+
+    def concatenated(p, a, b):
+        x = jnp.concatenate([a, b[index]], -1)
+        pads = networks.conv_padding(x.shape[1:3], k, s, padding)
+        y = jax.lax.conv_general_dilated(x, p["params"]["kernel"], (s, s), pads, dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        return y + p["params"]["bias"]
+
+    np.testing.assert_allclose(by_parts(params, a, b), concatenated(params, a, b), rtol=1e-5, atol=1e-5)
+    loss = lambda f: lambda p, a, b: jnp.sum(jnp.sin(f(p, a, b)))  # noqa: E731
+    for g1, g2 in zip(jax.tree_util.tree_leaves(jax.grad(loss(by_parts), argnums=(0, 1, 2))(params, a, b)),
+                      jax.tree_util.tree_leaves(jax.grad(loss(concatenated), argnums=(0, 1, 2))(params, a, b))):
+        np.testing.assert_allclose(g1, g2, rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("k,s,padding,size,cin,cout,form", CONV_CASES)

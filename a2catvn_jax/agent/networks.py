@@ -22,9 +22,10 @@ Kernels, strides and padding of the four conv layers are `agent.conv_kernels`,
 (params, inputs): the rest of the package never sees Flax. The network is split into
 functions so that the update can run the conv base on a whole rollout at once, the
 core step by step (`lax.scan`), and each head only where its loss has a non-zero
-weight. The target stream (conv1, conv2 of the target image) is a function of its own
-because targets are few: it runs once per distinct target image and the result is
-gathered.
+weight. The target stream is a function of its own because targets are few: conv1,
+conv2 and conv3's part on the target's channels (`SplitConv`) run once per distinct
+target image, and each frame adds its target's result to conv3's part on its own
+channels (the same function as conv3 on the concatenated maps).
 
 Padding: with "valid" no layer pads (an n-pixel input gives (n - k) // s + 1 outputs).
 With "same" each layer gives ceil(n / s) outputs: conv2..conv4 pad as `lax`'s "SAME"
@@ -270,6 +271,41 @@ class Conv1(nn.Module):
         return y + bias
 
 
+class SplitConv(nn.Module):
+    """conv3: a conv layer on two maps side by side, observation features `a` [N, ...,
+    c_a] and target features `b` [.., c_b], with the parameters of `Conv` on their
+    concatenation ("kernel" [k, k, c_a + c_b, F], "bias" [F]).
+
+    A convolution is linear in its input channels, so conv(concat(a, b)) = conv(a,
+    kernel[:, :, :c_a]) + conv(b, kernel[:, :, c_a:]) (padding adds zeros to both). The
+    network's targets are few (one image per goal) and every frame of a goal has the
+    same target features, so `target` runs once per distinct target image and each
+    frame adds its target's result (`observation(a) + target(b)[index]`), instead of
+    every frame convolving its copy of the target's features."""
+
+    features: int
+    kernel_size: int
+    stride: int
+    padding: Any
+    in_observation: int
+    in_target: int
+    kernel_init: Any = nn.initializers.lecun_normal()
+    impl: str = "auto"
+
+    def setup(self):
+        k, c = self.kernel_size, self.in_observation + self.in_target
+        self.kernel = self.param("kernel", self.kernel_init, (k, k, c, self.features))
+        self.bias = self.param("bias", nn.initializers.zeros, (self.features,))
+
+    def observation(self, a):
+        """The observation channels' part, bias included."""
+        return conv2d(a, self.kernel[:, :, : self.in_observation], self.stride, self.padding, self.impl) + self.bias
+
+    def target(self, b):
+        """The target channels' part."""
+        return conv2d(b, self.kernel[:, :, self.in_observation :], self.stride, self.padding, self.impl)
+
+
 class A2CATNet(nn.Module):
     """The network. Shapes: images [N, H, W, 3] uint8; features [N, dense_size]."""
 
@@ -288,7 +324,7 @@ class A2CATNet(nn.Module):
         pad, impl = cfg.conv_padding.upper(), cfg.conv_impl
         self.conv1 = Conv1(c1, cfg.space_to_depth, k1, s1, cfg.conv_padding, init.kernel, impl)
         self.conv2 = Conv(c2, k2, s2, pad, init.kernel, impl)
-        self.conv3 = Conv(c3, k3, s3, pad, init.kernel, impl)
+        self.conv3 = SplitConv(c3, k3, s3, pad, c2, c2, init.kernel, impl)
         self.conv4 = Conv(c4, k4, s4, pad, init.kernel, impl)
         self.dense = nn.Dense(cfg.dense_size, kernel_init=init.kernel)
         if cfg.memory == "lstm":
@@ -327,16 +363,17 @@ class A2CATNet(nn.Module):
     # -- conv base --------------------------------------------------------------------
 
     def target_stream(self, target_rgb):
-        """conv1, conv2 of target images: [N, g, g, c2]."""
-        return self._stream(target_rgb)
+        """What target images add to conv3 (before its ReLU): conv1, conv2 and conv3's
+        target part (`SplitConv`) -> [N, g3, g3, c3]."""
+        return self.conv3.target(self._stream(target_rgb))
 
     def _stream(self, rgb):
         return nn.relu(self.conv2(nn.relu(self.conv1(rgb))))
 
     def encode(self, rgb, target_features):
         """Observation images and their targets' stream features -> (conv4 maps, dense features)."""
-        x = jnp.concatenate([self._stream(rgb), target_features], axis=-1)
-        conv4 = nn.relu(self.conv4(nn.relu(self.conv3(x))))
+        x = nn.relu(self.conv3.observation(self._stream(rgb)) + target_features)
+        conv4 = nn.relu(self.conv4(x))
         feats = nn.relu(self.dense(conv4.reshape(conv4.shape[0], -1)))
         return conv4, feats
 
