@@ -110,9 +110,11 @@ def conv_padding(size: tuple, kernel: int, stride: int, padding) -> tuple:
 # `conv2d`'s "auto" on the CPU, from timing this package's layers both ways in its two
 # networks at 32 and 84 px (docs/benchmarks.md): matrix products for layers whose input
 # has at most MATMUL_MAX_CHANNELS channels (counted on stride x stride pixel blocks for
-# a strided layer: conv1, conv4, the heads' upsampling, the depth output) and for
-# strided layers on at least MATMUL_STRIDED_CHANNELS channels (the authors' conv2 and
-# conv3); XLA's convolution for the others (conv2 on 16 channels, the 3x3 layers on 64).
+# a strided layer: conv1, conv3's two parts and conv4 (32 channels each), the heads'
+# upsampling, the depth output) and for strided layers on at least
+# MATMUL_STRIDED_CHANNELS channels (the authors' conv2 and conv3); XLA's convolution for
+# the others (conv2 on 16 channels, the 3x3 segmentation outputs on 64). The rule was
+# timed when conv3 still convolved 64 channels (observation and target side by side).
 MATMUL_MAX_CHANNELS = 48
 MATMUL_STRIDED_CHANNELS = 32
 
