@@ -1,6 +1,7 @@
 import atexit
 import os
 import shutil
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -27,9 +28,22 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "-1"
 # backend compiles them without LLVM's optimisation passes (about 40% less compile time,
 # the programs about 2x slower) and emits its fused loops the older way instead of through
 # its fusion emitters (the tiny learner's update: compile 5.4 s instead of 12 s, runs 64-70
-# ms instead of 51-61). Neither changes what the code computes, only how fast it compiles
-# and runs. Benchmarks and training outside the tests keep the defaults.
+# ms instead of 51-61). The functions computed stay the same; the older emitter may round
+# some results differently (test_render.py::test_culling_changes_nothing). Benchmarks and
+# training outside the tests keep the defaults. An XLA that does not know a flag aborts
+# the process, so each flag is first tried in a subprocess, once per session (the workers
+# and the tests' subprocesses inherit the result).
 _FAST_COMPILE = ("--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false")
-for _flag in _FAST_COMPILE:
+
+
+def _xla_knows(flag: str) -> bool:
+    env = dict(os.environ, XLA_FLAGS=flag, JAX_PLATFORMS="cpu")
+    probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env=env, capture_output=True, timeout=300)
+    return probe.returncode == 0
+
+
+if "A2CATVN_TEST_XLA_FLAGS" not in os.environ:
+    os.environ["A2CATVN_TEST_XLA_FLAGS"] = " ".join(f for f in _FAST_COMPILE if _xla_knows(f))
+for _flag in os.environ["A2CATVN_TEST_XLA_FLAGS"].split():
     if _flag not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}".strip()
