@@ -17,7 +17,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import conftest
 import jax
 import numpy as np
 import pytest
@@ -79,8 +78,8 @@ def test_agent_beats_random_policy(tmp_path):
     """Training runs in its own process with XLA's default compiler options: this test's
     time is the program's run time, not its compile time (tests/conftest.py)."""
     cfg = load_config(None, TASK)
-    flags = os.environ.get("XLA_FLAGS", "").split()
-    env = dict(os.environ, XLA_FLAGS=" ".join(f for f in flags if f not in conftest._FAST_COMPILE))
+    fast_compile = os.environ["A2CATVN_TEST_XLA_FLAGS"].split()  # what tests/conftest.py added
+    env = dict(os.environ, XLA_FLAGS=" ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if f not in fast_compile))
     proc = subprocess.run([sys.executable, "-c", TRAIN, json.dumps(TASK), str(tmp_path), str(UPDATES)], env=env,
                           cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]

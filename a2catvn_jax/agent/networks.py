@@ -607,7 +607,8 @@ Carry = Any  # the memory core's state pytree, leaves [N, ...]
 class Networks:
     """The A2CAT-VN network as pure functions of its parameters (shapes: N frames).
 
-    images [N, H, W, 3] uint8; target features [N, g, g, c2]; conv4 maps
+    images [N, H, W, 3] uint8; target features (what a target adds to conv3,
+    `A2CATNet.target_stream`) [N, g3, g3, c3]; conv4 maps
     [N, g, g, c4]; features [N, dense]; core outputs [N, core]. A `blind` network sees
     every observation and target image as zeros (the control that tells whether an
     agent uses its sight).
@@ -634,7 +635,8 @@ class Networks:
             lambda c, z: jnp.where(reset.reshape((-1,) + (1,) * (c.ndim - 1)), z, c), carry, init)
 
     def target_stream(self, params: Params, target_rgb):
-        """conv1, conv2 of target images [K, H, W, 3] -> [K, g, g, c2]."""
+        """What target images [K, H, W, 3] add to conv3: conv1, conv2 and conv3's target
+        part -> [K, g3, g3, c3]."""
         if self.blind:
             target_rgb = jnp.zeros_like(target_rgb)
         return self.module.apply(params, target_rgb, method=A2CATNet.target_stream)
