@@ -1,6 +1,8 @@
 """Throughput benchmarks.
 
     python -m a2catvn_jax.benchmark env [--batch-sizes 16 64 256 1024] [--resolutions 64 84 174]
+    python -m a2catvn_jax.benchmark render [--batch-sizes 64] [--resolutions 64 84 174]
+        [--renderers raycast mjx warp] [--cores 1]
     python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
         [--processes 1 2 | --batch-sizes 16 256 1024 4096]
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
@@ -13,6 +15,13 @@ segmentation rendered) in a multi-room house, for each batch size and resolution
 with compile times; and, for the same house MJCF at the same resolution, MuJoCo's own
 OpenGL renderer (`mujoco.Renderer`, RGB + depth + segmentation passes) at the same
 agent poses, and the ratio of the two.
+
+`render`: frames/s of rendering alone (RGB, depth and segmentation, no environment
+step around it) on the same house from the same camera poses, for each batch size and
+resolution: the ray caster, `mjx.render` (impl warp) and MuJoCo Warp's renderer called
+directly; each in its own process pinned to `--cores` CPU cores (default 1: frames/s
+per core), with the share of pixels whose geom id agrees with the ray caster's
+(`bench/render_speed.py`).
 
 `train`: frames/s of the training update (rollout, replay, every loss, optimiser step)
 for `configs/quickstart.yaml` and `configs/paper.yaml` (Table I: 16 environments,
@@ -51,14 +60,17 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import jax
+import numpy as np
 
 from a2catvn_jax import cli
+from a2catvn_jax.bench import render_speed
 from a2catvn_jax.bench.profile import matmul_gflops, profile_update
 from a2catvn_jax.bench.throughput import bench_conv_impls, bench_env, bench_mujoco_gl, bench_network, bench_train
 from a2catvn_jax.config import CONFIGS, load_config
@@ -75,10 +87,14 @@ def _header():
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.benchmark", description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=["env", "train", "network", "profile"], help="what to benchmark")
+    parser.add_argument("what", choices=["env", "render", "train", "network", "profile"], help="what to benchmark")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=None, metavar="B",
-                        help="env (default: 16 64 256 1024); train: one process per size, with its peak memory")
-    parser.add_argument("--resolutions", type=int, nargs="+", default=[64, 84, 174], help="env")
+                        help="env (default: 16 64 256 1024); render (default: 64); "
+                             "train: one process per size, with its peak memory")
+    parser.add_argument("--resolutions", type=int, nargs="+", default=[64, 84, 174], help="env, render")
+    parser.add_argument("--renderers", nargs="+", choices=list(render_speed.RENDERERS), default=list(render_speed.RENDERERS),
+                        help="render: raycast (ours), mjx (mjx.render inside jit), warp (MuJoCo Warp called directly)")
+    parser.add_argument("--cores", type=int, default=1, help="render: CPU cores each renderer's process is pinned to")
     parser.add_argument("--steps", type=int, default=5, help="env: timed steps per setting")
     parser.add_argument("--gl-frames", type=int, default=200, help="env: frames timed for MuJoCo's renderer")
     parser.add_argument("--no-gl", action="store_true", help="env: skip MuJoCo's OpenGL renderer")
@@ -97,7 +113,7 @@ def main(argv=None) -> None:
     parser.add_argument("--resolution", type=int, default=84, help="network: image size")
     parser.add_argument("--frames", type=int, default=320, help="network: (observation, target) pairs per pass")
     parser.add_argument("--targets", type=int, default=16, help="network: distinct targets among them")
-    parser.add_argument("--repeats", type=int, default=5, help="network: timed passes")
+    parser.add_argument("--repeats", type=int, default=5, help="network: timed passes; render: timed rounds")
     parser.add_argument("--conv-impls", nargs="+", choices=["auto", "xla", "matmul"],
                         help="network: compare these agent.conv_impl values, timed in turns")
     parser.add_argument("--networks", nargs="+", metavar="NET", default=["default"],
@@ -109,6 +125,8 @@ def main(argv=None) -> None:
     if args.what == "train" and args.processes and args.batch_sizes:
         parser.error("train: give --processes or --batch-sizes, not both")
     overrides = cli.overrides_of(args)
+    if args.what == "render" and overrides:
+        parser.error("render: --set is not used (every renderer draws the benchmark's house)")
     _header()
     with cli.errors(parser, code=1):
         if args.what == "train" and args.processes:
@@ -126,6 +144,8 @@ def main(argv=None) -> None:
                       f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
         elif args.what == "profile":
             rows = _profile_table(args, overrides)
+        elif args.what == "render":
+            rows = _render_table(args, overrides)
         elif args.what == "network" and args.conv_impls:
             rows = []
             for name in args.networks:
@@ -250,6 +270,50 @@ def _profile_table(args, overrides) -> list:
             for op in t["ops"]:
                 print(f"  {op['ms_per_update']:10.1f} {op['calls_per_update']:6g}  {op['shape']:<22} "
                       f"{op['source'] or op['op']}")
+    return rows
+
+
+def _render_table(args, overrides) -> list:
+    """Rendering alone, each renderer, batch size and resolution in its own process
+    pinned to `--cores` cores (`bench/render_speed.py`)."""
+    renderers = [r for r in args.renderers if r == "raycast" or not mjx_render.unavailable()]
+    if renderers != args.renderers:
+        print(f"# mjx and warp left out: {mjx_render.unavailable()}", file=sys.stderr)
+    cores = workers.available_cores()
+    if not 1 <= args.cores <= len(cores):
+        raise workers.WorkerError(f"render: --cores must be between 1 and {len(cores)} (the cores this process may use), "
+                         f"got {args.cores}")
+    cores = cores[-args.cores:]
+    print(f"# each renderer in a process pinned to core(s) {','.join(map(str, cores))}")
+    print(f"{'batch':>6} {'res':>5} {'geoms':>6} {'renderer':>9} {'frames/s':>9} {'cores':>6} {'per core':>9} "
+          f"{'compile s':>10} {'same geom as raycast':>21}")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for res in args.resolutions:
+            for batch in args.batch_sizes or [64]:
+                reference = None
+                for renderer in renderers:
+                    out = Path(tmp) / f"{renderer}_{batch}_{res}.json"
+                    log = out.with_suffix(".log")
+                    command = [sys.executable, "-m", "a2catvn_jax.bench.render_speed", renderer, "--batch", str(batch),
+                               "--resolution", str(res), "--repeats", str(args.repeats), "--out", str(out)]
+                    with open(log, "w") as f:
+                        code = subprocess.run(workers.pinned(command, cores), stdout=f, stderr=subprocess.STDOUT,
+                                              env=workers.worker_env(cores)).returncode
+                    if code:
+                        tail = log.read_text().strip().splitlines()[-1:] or ["(no output)"]
+                        raise workers.WorkerError(f"render: the {renderer} process failed (exit status {code}): {tail[0]}")
+                    r = json.loads(out.read_text())
+                    geom = np.load(str(out) + ".npy")
+                    if renderer == "raycast":
+                        reference = geom
+                    compared = renderer != "raycast" and reference is not None
+                    r["same_geom_as_raycast"] = float(np.mean(geom == reference)) if compared else None
+                    r["frames_per_s_per_core"] = r["frames_per_s"] / max(r["cores"], 1e-9)
+                    rows.append(r)
+                    same = "-" if r["same_geom_as_raycast"] is None else f"{r['same_geom_as_raycast']:.4%}"
+                    print(f"{batch:>6} {res:>5} {r['geoms']:>6} {renderer:>9} {r['frames_per_s']:9.0f} {r['cores']:6.2f} "
+                          f"{r['frames_per_s_per_core']:9.0f} {r['compile_s']:10.1f} {same:>21}", flush=True)
     return rows
 
 
