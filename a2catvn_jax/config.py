@@ -364,6 +364,7 @@ class TrainConfig(_Section):
     replay_warmup: Bool = False  # fill the replay buffer before the first update (those frames are not counted)
     aux_downsize: Count = 4  # depth / segmentation targets are downsized by this factor
     aux_every: Count = 1  # depth / segmentation losses on every k-th frame of the rollout (1: all, the paper's)
+    remat_vision_heads: Bool = False  # recompute the depth / segmentation heads in the backward pass (less memory, same gradients)
     timeout_bootstrap: Bool = True  # a time-out bootstraps the returns from the critic; false: terminal (paper)
     loss_weights: LossWeights = field(default_factory=LossWeights)
     curriculum: Bool = False  # complexity tau rises linearly between two frame counts (paper)

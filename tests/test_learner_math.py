@@ -653,6 +653,31 @@ def test_aux_every_puts_the_vision_losses_on_every_kth_frame(lstm):
         np.testing.assert_allclose(float(terms[name]), float(every[name]), rtol=1e-6)
 
 
+def test_remat_vision_heads_gives_the_same_losses_and_gradients(lstm):
+    """`train.remat_vision_heads`: the heads run one rollout step at a time and again in
+    the backward pass instead of keeping their activations; every loss term and the
+    gradient of the total are those of the plain loss, and the compiled gradient
+    program holds less memory."""
+    cfg = load_config(None, TINY + ["train.remat_vision_heads=true"])
+    traj, truth = lstm.rollout(jax.random.PRNGKey(13))
+    targets = update_lib.targets_of(cfg, lstm.env)
+    params, carry = lstm.ts.params, lstm.ts.agent.carry
+
+    def grad_of(c):
+        loss = functools.partial(update_lib.loss, c, lstm.net, targets)
+        return jax.jit(jax.grad(lambda p: loss(p, traj, truth, carry, None, jax.random.PRNGKey(0)), has_aux=True))
+
+    plain, remat = grad_of(lstm.cfg), grad_of(cfg)
+    (g0, t0), (g1, t1) = plain(params), remat(params)
+    assert set(t0) == set(t1) and {"depth", "segmentation", "target_segmentation"} <= set(t1)
+    for name in t0:
+        np.testing.assert_allclose(float(t1[name]), float(t0[name]), rtol=1e-6, err_msg=name)
+    for a, b in zip(jax.tree_util.tree_leaves(g0), jax.tree_util.tree_leaves(g1)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-7)
+    memory = [f.lower(params).compile().memory_analysis().temp_size_in_bytes for f in (plain, remat)]
+    assert memory[1] < memory[0], memory
+
+
 def test_segmentation_targets_in_both_encodings(lstm, frame_stack):
     seg = np.random.default_rng(0).integers(0, NUM_CLASSES, (2, 16, 16))
     factor = lstm.cfg.train.aux_downsize

@@ -122,22 +122,34 @@ def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: Fram
     """Depth, observation and target segmentation losses (those with a non-zero weight)
     of conv4 maps [N, ..., g, g, c4] against `truth` and the targets' segmentation
     truth `target_seg` [N, ..., a, a(, 3)], on every `every`-th entry of the leading axis
-    (a rollout's time axis: `train.aux_every`)."""
+    (a rollout's time axis: `train.aux_every`). With `train.remat_vision_heads` the
+    backward pass recomputes the heads instead of keeping their activations."""
     heads = vn_heads_on(cfg)
     if not heads:
         return {}
     if every > 1:
         conv4, target_seg = conv4[::every], target_seg[::every]
         truth = jax.tree_util.tree_map(lambda a: a[::every], truth)
-    pred = apply_flat(lambda x: networks.vn_heads(params, x, heads), conv4, conv4.ndim - 3)
-    terms = {}
-    if "depth" in pred:
-        terms["depth"] = losses.mse(pred["depth"], truth.depth)
-    if "segmentation" in pred:
-        terms["segmentation"] = losses.segmentation_loss(pred["segmentation"], truth.segmentation)
-    if "target_segmentation" in pred:
-        terms["target_segmentation"] = losses.segmentation_loss(pred["target_segmentation"], target_seg)
-    return terms
+
+    def terms_of(params, conv4, truth, target_seg):
+        pred = apply_flat(lambda x: networks.vn_heads(params, x, heads), conv4, conv4.ndim - 3)
+        terms = {}
+        if "depth" in pred:
+            terms["depth"] = losses.mse(pred["depth"], truth.depth)
+        if "segmentation" in pred:
+            terms["segmentation"] = losses.segmentation_loss(pred["segmentation"], truth.segmentation)
+        if "target_segmentation" in pred:
+            terms["target_segmentation"] = losses.segmentation_loss(pred["target_segmentation"], target_seg)
+        return terms
+
+    if not cfg.train.remat_vision_heads:
+        return terms_of(params, conv4, truth, target_seg)
+    # One rollout step at a time, each step's heads run again in the backward pass: only
+    # one step's activations are live at once. Every step has as many frames, so the mean
+    # over steps of each step's mean is the mean over all frames.
+    step = jax.checkpoint(functools.partial(terms_of, params))
+    per_step = jax.lax.map(lambda xs: step(*xs), (conv4, truth, target_seg))
+    return {name: jnp.mean(value) for name, value in per_step.items()}
 
 
 def replay_terms(cfg: Config, networks: Networks, params: Params, target_feats, replay: replay_lib.Replay, key) -> dict:
