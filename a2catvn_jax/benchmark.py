@@ -125,8 +125,14 @@ def main(argv=None) -> None:
     if args.what == "train" and args.processes and args.batch_sizes:
         parser.error("train: give --processes or --batch-sizes, not both")
     overrides = cli.overrides_of(args)
-    if args.what == "render" and overrides:
-        parser.error("render: --set is not used (every renderer draws the benchmark's house)")
+    if args.what == "render":
+        if overrides:
+            parser.error("render: --set is not used (every renderer draws the benchmark's house)")
+        small = [f"{name} {v}" for name, values in (("--batch-sizes", args.batch_sizes or []),
+                                                    ("--resolutions", args.resolutions), ("--repeats", [args.repeats]))
+                 for v in values if v < 1]
+        if small:
+            parser.error(f"render: {', '.join(small)}: must be >= 1")
     _header()
     with cli.errors(parser, code=1):
         if args.what == "train" and args.processes:
@@ -276,9 +282,13 @@ def _profile_table(args, overrides) -> list:
 def _render_table(args, overrides) -> list:
     """Rendering alone, each renderer, batch size and resolution in its own process
     pinned to `--cores` cores (`bench/render_speed.py`)."""
-    renderers = [r for r in args.renderers if r == "raycast" or not mjx_render.unavailable()]
-    if renderers != args.renderers:
+    # The ray caster first: the others' geom ids are compared with its.
+    renderers = [r for r in render_speed.RENDERERS if r in args.renderers]
+    if any(r != "raycast" for r in renderers) and mjx_render.unavailable():
         print(f"# mjx and warp left out: {mjx_render.unavailable()}", file=sys.stderr)
+        renderers = [r for r in renderers if r == "raycast"]
+    if "raycast" not in renderers:
+        print("# raycast not among --renderers: geom ids are not compared", file=sys.stderr)
     cores = workers.available_cores()
     if not 1 <= args.cores <= len(cores):
         raise workers.WorkerError(f"render: --cores must be between 1 and {len(cores)} (the cores this process may use), "
@@ -309,6 +319,9 @@ def _render_table(args, overrides) -> list:
                         reference = geom
                     compared = renderer != "raycast" and reference is not None
                     r["same_geom_as_raycast"] = float(np.mean(geom == reference)) if compared else None
+                    if r["pinned_cores"] != args.cores:
+                        raise workers.WorkerError(f"render: the {renderer} process ran on {r['pinned_cores']} cores, "
+                                                  f"not the {args.cores} it was pinned to")
                     r["frames_per_s_per_core"] = r["frames_per_s"] / max(r["cores"], 1e-9)
                     rows.append(r)
                     same = "-" if r["same_geom_as_raycast"] is None else f"{r['same_geom_as_raycast']:.4%}"

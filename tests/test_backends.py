@@ -102,7 +102,7 @@ def test_render_benchmark_draws_the_same_frames_with_each_renderer(tmp_path, cap
     assert [r["renderer"] for r in rows] == ["raycast", "mjx", "warp"]
     for r in rows:
         assert r["batch"] == 2 and r["resolution"] == 16 and r["frames_per_s"] > 0
-        assert 0 < r["cores"] < 1.2  # pinned to one core
+        assert r["pinned_cores"] == 1 and 0 < r["cores"] < 1.2
     assert rows[0]["same_geom_as_raycast"] is None
     assert all(r["same_geom_as_raycast"] >= 0.99 for r in rows[1:])
     assert "per core" in capsys.readouterr().out

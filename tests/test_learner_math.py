@@ -480,6 +480,9 @@ class Setup:
         return update_lib.loss(self.cfg, self.net, targets, params, traj, truth, self.ts.agent.carry, replay, key)
 
 
+FRAME_STACK = ["agent.memory=frame_stack", "agent.segmentation_loss=cross_entropy", "agent.space_to_depth=true"]
+
+
 def _setup(overrides, env=None) -> Setup:
     cfg = load_config(None, TINY + overrides)
     env = env if env is not None else NavEnv(cfg.env)
@@ -496,8 +499,7 @@ def lstm():
 @pytest.fixture(scope="module")
 def frame_stack(lstm):
     """The non-default network settings together: frame stack, class-id segmentation, space-to-depth conv1."""
-    return _setup(["agent.memory=frame_stack", "agent.segmentation_loss=cross_entropy", "agent.space_to_depth=true"],
-                  env=lstm.env)
+    return _setup(FRAME_STACK, env=lstm.env)
 
 
 def _random_carry(net, n, seed):
@@ -653,21 +655,26 @@ def test_aux_every_puts_the_vision_losses_on_every_kth_frame(lstm):
         np.testing.assert_allclose(float(terms[name]), float(every[name]), rtol=1e-6)
 
 
-def test_remat_vision_heads_gives_the_same_losses_and_gradients(lstm):
+@pytest.mark.parametrize("setup, overrides", [("lstm", []), ("lstm", ["train.aux_every=3"]),
+                                             ("frame_stack", FRAME_STACK)])
+def test_remat_vision_heads_gives_the_same_losses_and_gradients(request, setup, overrides):
     """`train.remat_vision_heads`: the heads run one rollout step at a time and again in
     the backward pass instead of keeping their activations; every loss term and the
-    gradient of the total are those of the plain loss, and the compiled gradient
-    program holds less memory."""
-    cfg = load_config(None, TINY + ["train.remat_vision_heads=true"])
-    traj, truth = lstm.rollout(jax.random.PRNGKey(13))
-    targets = update_lib.targets_of(cfg, lstm.env)
-    params, carry = lstm.ts.params, lstm.ts.agent.carry
+    gradient of the total are those of the plain loss (also with `aux_every`, and with
+    the frame stack and class-id segmentation), and the compiled gradient program holds
+    less memory."""
+    base = request.getfixturevalue(setup)
+    plain_cfg = load_config(None, TINY + overrides)
+    cfg = load_config(None, TINY + overrides + ["train.remat_vision_heads=true"])
+    traj, truth = base.rollout(jax.random.PRNGKey(13))
+    targets = update_lib.targets_of(cfg, base.env)
+    params, carry = base.ts.params, base.ts.agent.carry
 
     def grad_of(c):
-        loss = functools.partial(update_lib.loss, c, lstm.net, targets)
+        loss = functools.partial(update_lib.loss, c, base.net, targets)
         return jax.jit(jax.grad(lambda p: loss(p, traj, truth, carry, None, jax.random.PRNGKey(0)), has_aux=True))
 
-    plain, remat = grad_of(lstm.cfg), grad_of(cfg)
+    plain, remat = grad_of(plain_cfg), grad_of(cfg)
     (g0, t0), (g1, t1) = plain(params), remat(params)
     assert set(t0) == set(t1) and {"depth", "segmentation", "target_segmentation"} <= set(t1)
     for name in t0:

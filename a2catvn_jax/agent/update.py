@@ -118,12 +118,14 @@ def frame_truth(cfg: Config, depth, segmentation) -> FrameTruth:
     return FrameTruth(depth, seg)
 
 
-def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: FrameTruth, target_seg, every: int = 1) -> dict:
+def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: FrameTruth, target_seg, every: int = 1,
+             remat: bool = False) -> dict:
     """Depth, observation and target segmentation losses (those with a non-zero weight)
     of conv4 maps [N, ..., g, g, c4] against `truth` and the targets' segmentation
     truth `target_seg` [N, ..., a, a(, 3)], on every `every`-th entry of the leading axis
-    (a rollout's time axis: `train.aux_every`). With `train.remat_vision_heads` the
-    backward pass recomputes the heads instead of keeping their activations."""
+    (a rollout's time axis: `train.aux_every`). With `remat` (`train.remat_vision_heads`)
+    the heads run one entry of that axis at a time and again in the backward pass
+    instead of keeping their activations."""
     heads = vn_heads_on(cfg)
     if not heads:
         return {}
@@ -142,7 +144,7 @@ def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: Fram
             terms["target_segmentation"] = losses.segmentation_loss(pred["target_segmentation"], target_seg)
         return terms
 
-    if not cfg.train.remat_vision_heads:
+    if not remat:
         return terms_of(params, conv4, truth, target_seg)
     # One rollout step at a time, each step's heads run again in the backward pass: only
     # one step's activations are live at once. Every step has as many frames, so the mean
@@ -224,7 +226,8 @@ def loss(cfg: Config, networks: Networks, targets: Targets, params: Params, traj
     returns = losses.bootstrapped_returns(traj.reward, traj.done, held[-1], tc.gamma, timeouts(cfg, traj), held[:-1])
     actor, critic, neg_entropy = losses.actor_critic_losses(logits[:-1], values[:-1], traj.action, returns)
     terms = {"actor": actor, "critic": critic, "entropy": neg_entropy}
-    terms.update(vn_terms(cfg, networks, params, conv4, truth, targets.segmentation[traj.target], tc.aux_every))
+    terms.update(vn_terms(cfg, networks, params, conv4, truth, targets.segmentation[traj.target], tc.aux_every,
+                          tc.remat_vision_heads))
     if replay is not None:
         terms.update(replay_terms(cfg, networks, params, target_feats, replay, key))
     total = sum(getattr(w, name) * value for name, value in terms.items())

@@ -22,10 +22,13 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
 import sys
 import time
 
 import numpy as np
+
+from a2catvn_jax import cli
 
 RENDERERS = ("raycast", "mjx", "warp")
 
@@ -92,7 +95,8 @@ def measure(renderer: str, batch: int, resolution: int, repeats: int = 5, sets: 
     compile_s = time.perf_counter() - t0
     seconds, cores = _timed(call, sets, repeats, sync)
     return {"renderer": renderer, "batch": batch, "resolution": resolution, "geoms": int(world.models[0].ngeom),
-            "frames_per_s": batch / seconds, "cores": cores, "compile_s": compile_s, "geom": geom}
+            "frames_per_s": batch / seconds, "cores": cores, "pinned_cores": len(os.sched_getaffinity(0)),
+            "compile_s": compile_s, "geom": geom}
 
 
 def _warp_direct(world, scene, poses, resolution: int):
@@ -150,7 +154,8 @@ def main(argv=None) -> None:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--out", required=True, help="JSON of the result; the geom ids go to OUT.npy")
     args = p.parse_args(argv)
-    r = measure(args.renderer, args.batch, args.resolution, args.repeats)
+    with cli.errors(p):
+        r = measure(args.renderer, args.batch, args.resolution, args.repeats)
     np.save(args.out + ".npy", r.pop("geom"))
     with open(args.out, "w") as f:
         json.dump(r, f)
