@@ -20,7 +20,6 @@ parent can check that the renderers drew the same thing.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import os
 import sys
@@ -107,24 +106,17 @@ def _warp_direct(world, scene, poses, resolution: int):
     import mujoco.mjx.third_party.mujoco_warp as mjw
     import warp as wp
 
-    from a2catvn_jax.env.mjx_render import RENDER_GROUPS
-    from a2catvn_jax.env.scenes.mjcf import AGENT_CAMERA
+    from a2catvn_jax.env.mjx_render import MjxRenderer
 
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    model = copy.copy(world.models[0])
-    cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, AGENT_CAMERA)
-    model.cam_fovy[cam] = world.spec.fovy
-    model.cam_sensorsize[cam] = 0.0
+    backend = MjxRenderer(world.models[0], world.spec)  # the mjx backend's model and render settings
+    model, cam = backend.model, backend.camera
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     batch = scene.shape[0]
     m = mjw.put_model(model)
     d = mjw.put_data(model, data, nworld=batch)
-    rc = mjw.create_render_context(
-        model, nworld=batch, cam_res=(resolution, resolution), render_rgb=True, render_depth=True, render_seg=True,
-        use_textures=True, use_shadows=False, enabled_geom_groups=list(RENDER_GROUPS),
-        cam_active=[i == cam for i in range(model.ncam)])
-    camera_pose = jax.jit(lambda pose: world.mjx.camera_pose(world._data(world.arrays.mjx, scene, pose)))
+    rc = mjw.create_render_context(model, nworld=batch, **backend.context_settings())
+    camera_pose = jax.jit(lambda pose: world.mjx.camera_pose(world.data(world.arrays, scene, pose)))
     xpos0, xmat0 = d.cam_xpos.numpy(), d.cam_xmat.numpy()
     sets = []
     for pose in poses:  # camera poses as Warp arrays, made before anything is timed

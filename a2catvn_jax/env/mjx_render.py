@@ -89,6 +89,18 @@ def fields_of(models: list[mujoco.MjModel]) -> MjxFields:
     return MjxFields(*(jnp.asarray(np.stack(col), jnp.float32) for col in zip(*rows)))
 
 
+def agent_camera_model(model: mujoco.MjModel, spec: CameraSpec) -> tuple[mujoco.MjModel, int]:
+    """(a copy of `model` whose agent camera has the spec's field of view, that camera's
+    id): a render context precomputes its rays from the model's camera."""
+    camera = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, AGENT_CAMERA)
+    if camera < 0:
+        raise BackendError(f"the model has no camera {AGENT_CAMERA!r} for the mjx backend")
+    model = copy.copy(model)
+    model.cam_fovy[camera] = spec.fovy
+    model.cam_sensorsize[camera] = 0.0
+    return model, camera
+
+
 class MjxRenderer:
     """Frames from `mjx.render` for a batch of scenes sharing `model`'s geom layout."""
 
@@ -99,31 +111,28 @@ class MjxRenderer:
         import warp
 
         warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)  # no banner on stdout at Warp's start
-        self.camera = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, AGENT_CAMERA)
-        if self.camera < 0:
-            raise BackendError(f"the model has no camera {AGENT_CAMERA!r} for the mjx backend")
-        model = copy.copy(model)  # the camera takes the spec's field of view (the context precomputes its rays)
-        model.cam_fovy[self.camera] = spec.fovy
-        model.cam_sensorsize[self.camera] = 0.0
-        self.model = model
+        self.model, self.camera = agent_camera_model(model, spec)
         self.spec = spec
-        data = mujoco.MjData(model)
-        mujoco.mj_forward(model, data)
-        self._mx = mjx.put_model(model, impl="warp")
-        self._dx = mjx.put_data(model, data, impl="warp")
+        data = mujoco.MjData(self.model)
+        mujoco.mj_forward(self.model, data)
+        self._mx = mjx.put_model(self.model, impl="warp")
+        self._dx = mjx.put_data(self.model, data, impl="warp")
         x, y = camera.image_plane(spec.height, spec.width, spec.fovy)
         # |(1, x, y)|: along-ray distance over planar depth at each pixel (the camera never rolls).
         self._ray_scale = jnp.asarray(np.sqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2), jnp.float32)
         self._contexts: dict[int, object] = {}
 
+    def context_settings(self) -> dict:
+        """The render context's settings besides the model and world count (also what
+        `benchmark render` gives MuJoCo Warp called directly)."""
+        return dict(cam_res=(self.spec.width, self.spec.height), render_rgb=True, render_depth=True, render_seg=True,
+                    use_textures=True, use_shadows=False, enabled_geom_groups=list(RENDER_GROUPS),
+                    cam_active=[i == self.camera for i in range(self.model.ncam)])
+
     def context(self, worlds: int):
         """The render context for batches of `worlds` frames (made on first use)."""
         if worlds not in self._contexts:
-            self._contexts[worlds] = mjx.create_render_context(
-                mjm=self.model, nworld=worlds, cam_res=(self.spec.width, self.spec.height),
-                render_rgb=True, render_depth=True, render_seg=True, use_textures=True, use_shadows=False,
-                enabled_geom_groups=list(RENDER_GROUPS),
-                cam_active=[i == self.camera for i in range(self.model.ncam)])
+            self._contexts[worlds] = mjx.create_render_context(mjm=self.model, nworld=worlds, **self.context_settings())
         return self._contexts[worlds]
 
     def render(self, fields: MjxFields, geom_class, scene, cam_pos, cam_mat, geom_xpos, geom_xmat) -> Frame:
