@@ -325,6 +325,25 @@ def test_jobs_train_each_run_by_the_runners_own_command(trained, from_store, mon
         run_tiny(root, one, seeds=(0, 6), jobs=2)
 
 
+def test_an_interrupted_run_stops_the_runner_and_the_same_command_resumes_it(tmp_path, monkeypatch):
+    """A run whose training stops early with a checkpoint (what Ctrl-C or SIGTERM does to
+    the training loop; here it returns after one of its two updates) is neither evaluated
+    nor stored: the runner stops with an error naming it, and the same command resumes it
+    from that checkpoint to its end."""
+    exp = tiny((ex.Variant("a"),), name="tiny_interrupted")
+    real = ex.train
+    monkeypatch.setattr(ex, "train", lambda *args, **kw: real(*args, **kw, max_updates=1))
+    with pytest.raises(ex.ExperimentError, match=r"interrupted: a, seed 0 stopped at update 1 of 2 with a "
+                                                 r"checkpoint in .*seed_0; the same command resumes it"):
+        run_tiny(tmp_path, exp, seeds=(0,))
+    (run,) = ex.plan(exp, "cpu", [0], tmp_path / "runs", TINY, tmp_path / "docs" / "experiments" / "runs")
+    assert not run.is_stored()
+    monkeypatch.setattr(ex, "train", real)
+    summary, lines = run_tiny(tmp_path, exp, seeds=(0,), report=False)
+    assert trained_runs(lines) == ["resuming a, seed 0"] and run.is_stored()
+    assert summary == {"experiment": "tiny_interrupted", "trained": ["a, seed 0"]}
+
+
 def test_a_run_stored_before_new_configuration_keys_is_found(trained, from_store, tmp_path):
     store = tmp_path / "store"
     shutil.copytree(trained[0] / "docs" / "experiments" / "runs", store)

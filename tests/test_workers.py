@@ -6,7 +6,10 @@ exit status and output."""
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
 import sys
+import time
 
 import pytest
 
@@ -70,3 +73,44 @@ def test_pool_pins_each_process_and_runs_at_most_jobs_at_once(tmp_path):
 def test_pool_checks_its_arguments(tmp_path):
     with pytest.raises(workers.WorkerError, match="2 commands but 1 log paths"):
         workers.run_pool([["true"], ["true"]], 1, [tmp_path / "a.log"])
+
+
+CHILD = """
+import pathlib, signal, sys, time
+out = pathlib.Path(sys.argv[1])
+signal.signal(signal.SIGTERM, lambda *_: (out.write_text(out.read_text() + "stopped"), sys.exit(0)))
+out.write_text("started ")
+time.sleep(60)
+"""
+
+POOL = """
+import signal, sys
+from pathlib import Path
+from a2catvn_jax.run import workers
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal, also when started in the background
+tmp = Path(sys.argv[1])
+try:
+    workers.run_pool([[sys.executable, "-c", sys.argv[2], str(tmp / f"child{i}")] for i in range(3)], 1,
+                     [tmp / f"{i}.log" for i in range(3)], poll_s=0.05)
+except workers.PoolInterrupted as e:
+    print(e)
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_to_the_pool_stops_its_running_processes_once_each(tmp_path, sig):
+    """SIGTERM or Ctrl-C to the pool's process: each running process gets one SIGTERM
+    (and the pool waits for it), no further command starts, and the pool raises
+    `PoolInterrupted` with what it stopped."""
+    pool = subprocess.Popen([sys.executable, "-c", POOL, str(tmp_path), CHILD], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    child = tmp_path / "child0"
+    deadline = time.time() + 60
+    while not (child.exists() and child.read_text()) and time.time() < deadline:
+        time.sleep(0.05)
+    pool.send_signal(sig)
+    out, err = pool.communicate(timeout=60)
+    assert pool.returncode == 0, err
+    assert child.read_text() == "started stopped"
+    assert not (tmp_path / "child1").exists()
+    assert out.strip() == f"interrupted ({sig.name}): asked the 1 running process(es) to stop, 2 command(s) not started"

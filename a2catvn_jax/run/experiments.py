@@ -361,11 +361,15 @@ def train_run(run: Run, log: Callable[[str], None]) -> float:
             log(f"pre-training {run.name}")
             pretrain(run.cfg, init_from, log=lambda _: None)
     log(f"{'resuming' if resume else 'training'} {run.name} in {run.workdir}")
-    train(run.cfg, run.workdir, resume=resume, progress=False, log=lambda _: None, init_from=init_from)
+    _, state, _ = train(run.cfg, run.workdir, resume=resume, progress=False, log=lambda _: None, init_from=init_from)
     seconds = time.perf_counter() - t0
     timing = run.workdir / "experiment_time.json"
     spent = json.loads(timing.read_text())["seconds"] if timing.exists() else 0.0
     timing.write_text(json.dumps({"seconds": spent + seconds}) + "\n")
+    if int(state.update) < total_updates(run.cfg):  # Ctrl-C or SIGTERM: checkpointed, not finished
+        raise ExperimentError(f"interrupted: {run.name} stopped at update {int(state.update)} of "
+                              f"{total_updates(run.cfg)} with a checkpoint in {run.workdir}; the same command "
+                              f"resumes it")
     return seconds
 
 

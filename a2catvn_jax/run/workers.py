@@ -14,8 +14,10 @@ most one per group at a time, each pinned to a free group (Linux: `sched_setaffi
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Optional, Sequence
@@ -25,6 +27,14 @@ from a2catvn_jax.errors import UserError
 
 class WorkerError(UserError, ValueError):
     """A pool that cannot be set up (more processes than cores, no affinity support)."""
+
+
+class PoolInterrupted(UserError, RuntimeError):
+    """The pool was stopped by Ctrl-C or SIGTERM; its running processes were asked to stop."""
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 def available_cores() -> list[int]:
@@ -79,21 +89,30 @@ def run_pool(commands: Sequence[Sequence[str]], jobs: int, logs: Sequence[Path],
     """Run `commands` (argument lists), at most `jobs` at once, each pinned to one of
     `core_groups(jobs)` that no running command holds, its stdout and stderr written to
     the matching path of `logs`. Calls `on_start(i, cores)` and `on_end(i, exit code)`;
-    returns the exit codes in the order of `commands`."""
+    returns the exit codes in the order of `commands`. Ctrl-C or SIGTERM sends each
+    running process one SIGTERM (a training run checkpoints and stops on it), waits for
+    them and raises `PoolInterrupted`."""
     if len(logs) != len(commands):
         raise WorkerError(f"{len(commands)} commands but {len(logs)} log paths")
     free = core_groups(jobs)
     waiting = list(range(len(commands)))
     running: dict[int, tuple[subprocess.Popen, list[int], object]] = {}
     codes: list[int] = [0] * len(commands)
+    # SIGTERM (what `timeout`, `kill` and job schedulers send) stops the pool like Ctrl-C:
+    # without this the pool would die at once and leave its processes running.
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
     try:
         while waiting or running:
             while waiting and free:
                 i, cores = waiting.pop(0), free.pop(0)
                 Path(logs[i]).parent.mkdir(parents=True, exist_ok=True)
                 out = open(logs[i], "w")
+                # A session of its own: Ctrl-C at the terminal reaches the pool alone, which
+                # then stops each process with one SIGTERM (a second signal would abort a
+                # training run without its checkpoint).
                 proc = subprocess.Popen(pinned(commands[i], cores), stdout=out, stderr=subprocess.STDOUT,
-                                        env=worker_env(cores))
+                                        env=worker_env(cores), start_new_session=True)
                 running[i] = (proc, cores, out)
                 if on_start:
                     on_start(i, cores)
@@ -108,7 +127,13 @@ def run_pool(commands: Sequence[Sequence[str]], jobs: int, logs: Sequence[Path],
                 codes[i] = code
                 if on_end:
                     on_end(i, code)
+    except KeyboardInterrupt as e:
+        alive = sum(proc.poll() is None for proc, _, _ in running.values())
+        raise PoolInterrupted(f"interrupted ({str(e) or 'SIGINT'}): asked the {alive} running process(es) to stop, "
+                              f"{len(waiting)} command(s) not started") from None
     finally:  # interrupted: let the others stop (training checkpoints on SIGINT / SIGTERM)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         for proc, _, out in running.values():
             if proc.poll() is None:
                 proc.terminate()
