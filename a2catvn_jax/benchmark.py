@@ -39,9 +39,9 @@ memory.
 `network`: forward+backward frames/s of the conv base with the depth and segmentation
 heads on `--frames` (observation, target) pairs: as the update runs it (the target
 stream once per distinct target), with both streams computed for every frame, and
-the same network in PyTorch (`pip install torch==2.13.0`), with the ratio. With
-`--networks`, each listed network in turn: `default` (the built-in one, compared with
-PyTorch) or a config file of agent keys such as `configs/presets/authors_network.yaml`.
+the same network in PyTorch (`pip install torch==2.13.0`), timed in turns, with the
+ratios. With `--networks`, each listed network in turn: `default` (the built-in one) or
+a config file of agent keys such as `configs/presets/authors_network.yaml`.
 With `--conv-impls`, instead, each network with each `agent.conv_impl` listed, timed
 in turns in one process (`--repeats` rounds), so that the ratios come from one run.
 
@@ -166,14 +166,12 @@ def main(argv=None) -> None:
             for name in args.networks:
                 default = name == "default"
                 r = bench_network(args.resolution, args.frames, args.targets, args.repeats, overrides,
-                                  config=None if default else name, torch=default)
+                                  config=None if default else name)
                 rows.append({"network": name, **r})
                 print(f"{name}: {r['params']:,} parameters in the whole network; forward+backward, {args.frames} frames at "
                       f"{args.resolution}x{args.resolution}, frames/s:")
                 print(f"  JAX, target stream once per distinct target ({args.targets}): {r['jax_fps']:.0f}")
                 print(f"  JAX, both streams every frame:                      {r['jax_per_frame_fps']:.0f}")
-                if not default:
-                    continue
                 if r["torch_fps"] is None:
                     print("  PyTorch: not installed (pip install torch==2.13.0)")
                 else:

@@ -467,3 +467,25 @@ def test_transposed_heads_need_matching_aux_downsize():
     with pytest.raises(ConfigError, match=r"to stride 4, which must equal train.aux_downsize \(2\)"):
         _preset(84, "train.aux_downsize=2")
     load_config(None, ["agent.vision_heads=transposed", "agent.conv_strides=[4,2,2,1]", "agent.conv_kernels=[8,4,3,3]"])
+
+
+@pytest.mark.parametrize("preset", [False, True], ids=["default", "authors"])
+def test_the_pytorch_reference_has_the_networks_layers(preset):
+    """`benchmark network`'s PyTorch model of a configuration (`bench.torch_reference`)
+    has the JAX network's conv base, dense layer and vision heads: as many parameters,
+    but for the default heads' upsampling biases (one per channel in PyTorch's
+    transposed convolution, one per channel and sub-pixel in the sub-pixel convolution)."""
+    torch_reference = pytest.importorskip("a2catvn_jax.bench.torch_reference", reason="PyTorch: the bench extra")
+    import torch
+
+    cfg = _preset(84) if preset else load_config(None, ["env.render.image_size=84"])
+    model = torch_reference.TorchNetwork(cfg.agent, 84)
+    params = jax.eval_shape(networks.make_networks(cfg, ACTIONS).init, jax.random.PRNGKey(0))["params"]
+    layers = ("conv1", "conv2", "conv3", "conv4", "dense", "vn")
+    bias_difference = 0 if preset else 3 * sum(torch_reference.UPSAMPLE_HIDDEN.values())
+    assert sum(p.numel() for p in model.parameters()) + bias_difference == sum(
+        networks.num_params(params[k]) for k in layers)
+    feats, heads = model(*(torch.zeros((2, 3, 84, 84), dtype=torch.uint8),) * 2)
+    assert tuple(feats.shape) == (2, cfg.agent.dense_size)
+    assert {k: tuple(v.shape[:2]) for k, v in heads.items()} == {
+        "depth": (2, 1), "segmentation": (2, 3), "target_segmentation": (2, 3)}

@@ -183,33 +183,34 @@ def bench_conv_impls(resolution: int, frames: int, targets: int, rounds: int, im
 def bench_network(resolution: int, frames: int, targets: int, repeats: int, overrides=(), config=None,
                   torch: bool = True) -> dict:
     """Forward+backward frames/s of the conv base and VN heads: JAX as trained, JAX with
-    both streams per frame, and PyTorch (None when torch is not installed or `torch` is
-    False; it is the default network). `config` (config files, e.g. a preset of agent
-    keys) and `overrides` may set `agent.*` keys (e.g. agent.space_to_depth=true)."""
+    both streams per frame, and the same network in PyTorch (`bench.torch_reference`;
+    None when torch is not installed or `torch` is False). The three are timed in turns,
+    one pass of each per round for `repeats` rounds, and each figure is the median
+    round, so a slow spell of a shared machine slows all three. `config` (config files,
+    e.g. a preset of agent keys) and `overrides` may set `agent.*` keys (e.g.
+    agent.space_to_depth=true)."""
     params, grad, rgb, target_rgb = _network_pass(resolution, frames, overrides, config)
-
-    def fps(*args):
-        jax.block_until_ready(grad(params, *args))
-        t0 = time.perf_counter()
-        for _ in range(repeats):
-            out = grad(params, *args)
-        jax.block_until_ready(out)
-        return repeats * frames / (time.perf_counter() - t0)
-
-    shared = fps(rgb, target_rgb[:targets], jnp.arange(frames) % targets)
-    per_frame = fps(rgb, target_rgb, jnp.arange(frames))
+    steps = {
+        "jax_fps": functools.partial(grad, params, rgb, target_rgb[:targets], jnp.arange(frames) % targets),
+        "jax_per_frame_fps": functools.partial(grad, params, rgb, target_rgb, jnp.arange(frames)),
+    }
     try:
         if not torch:
             raise ImportError
         from a2catvn_jax.bench import torch_reference  # needs PyTorch
     except ImportError:
-        torch_fps = None
+        pass
     else:
-        step = torch_reference.step_fn(resolution, frames)
-        step()
-        t0 = time.perf_counter()
-        for _ in range(repeats):
-            step()
-        torch_fps = repeats * frames / (time.perf_counter() - t0)
+        agent = load_config(config, [f"env.render.image_size={resolution}", *overrides]).agent
+        steps["torch_fps"] = torch_reference.step_fn(agent, resolution, frames)
+    times = {name: [] for name in steps}
+    for step in steps.values():  # compile / warm up
+        jax.block_until_ready(step())
+    for _ in range(repeats):
+        for name, step in steps.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(step())
+            times[name].append(time.perf_counter() - t0)
+    fps = {name: frames / float(np.median(t)) for name, t in times.items()}
     return {"resolution": resolution, "frames": frames, "targets": targets, "params": num_params(params),
-            "jax_fps": shared, "jax_per_frame_fps": per_frame, "torch_fps": torch_fps}
+            "jax_fps": fps["jax_fps"], "jax_per_frame_fps": fps["jax_per_frame_fps"], "torch_fps": fps.get("torch_fps")}
