@@ -6,7 +6,7 @@
     python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
         [--processes 1 2 | --batch-sizes 16 256 1024 4096]
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
-        [--networks default configs/presets/authors_network.yaml] [--conv-impls xla auto matmul]
+        [--networks default configs/presets/authors_network.yaml] [--conv-impls xla auto matmul | --layers]
     python -m a2catvn_jax.benchmark profile [--configs quickstart image_goals_cpu paper] [--updates 5]
         [--networks default configs/presets/authors_network.yaml] [--ops 15]
 
@@ -44,6 +44,9 @@ ratios. With `--networks`, each listed network in turn: `default` (the built-in 
 a config file of agent keys such as `configs/presets/authors_network.yaml`.
 With `--conv-impls`, instead, each network with each `agent.conv_impl` listed, timed
 in turns in one process (`--repeats` rounds), so that the ratios come from one run.
+With `--layers`, instead, the image stream's conv1 and conv2 alone, forward+backward
+on `--frames` images, by XLA's convolution, by matrix products and in PyTorch, timed
+in turns: where the network's time against PyTorch's goes.
 
 `profile`: milliseconds per update of each phase of the training update (rollout and
 the environment alone; the loss forward and forward + backward for plain A2C and for
@@ -72,7 +75,14 @@ import numpy as np
 from a2catvn_jax import cli
 from a2catvn_jax.bench import render_speed
 from a2catvn_jax.bench.profile import matmul_gflops, profile_update
-from a2catvn_jax.bench.throughput import bench_conv_impls, bench_env, bench_mujoco_gl, bench_network, bench_train
+from a2catvn_jax.bench.throughput import (
+    bench_conv_impls,
+    bench_env,
+    bench_mujoco_gl,
+    bench_network,
+    bench_stream_layers,
+    bench_train,
+)
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import mjx_render
 from a2catvn_jax.run import workers
@@ -116,6 +126,8 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="network: timed passes; render: timed rounds")
     parser.add_argument("--conv-impls", nargs="+", choices=["auto", "xla", "matmul"],
                         help="network: compare these agent.conv_impl values, timed in turns")
+    parser.add_argument("--layers", action="store_true",
+                        help="network: time the image stream's conv1 and conv2 alone, each way and in PyTorch")
     parser.add_argument("--networks", nargs="+", metavar="NET", default=["default"],
                         help="network, profile: the networks to time, side by side: default (the built-in network) or config "
                              "files of agent keys, e.g. --networks default configs/presets/authors_network.yaml")
@@ -152,6 +164,18 @@ def main(argv=None) -> None:
             rows = _profile_table(args, overrides)
         elif args.what == "render":
             rows = _render_table(args, overrides)
+        elif args.what == "network" and args.layers:
+            rows = []
+            for name in args.networks:
+                layers = bench_stream_layers(args.resolution, args.frames, args.repeats, overrides,
+                                             config=None if name == "default" else name)
+                rows.append({"network": name, "resolution": args.resolution, "frames": args.frames, "layers": layers})
+                print(f"{name}: the image stream's layers, forward+backward on {args.frames} images, ms (median of "
+                      f"{args.repeats} rounds):")
+                for layer, r in layers.items():
+                    torch_ms = f"{r['torch']:.1f}" if "torch" in r else "not installed"
+                    print(f"  {layer} ({r['shape']}): XLA convolution {r['xla']:.1f}, matrix products {r['matmul']:.1f} "
+                          f"(auto takes {r['auto']}), PyTorch {torch_ms}", flush=True)
         elif args.what == "network" and args.conv_impls:
             rows = []
             for name in args.networks:

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from a2catvn_jax.agent.networks import make_networks, num_params
+from a2catvn_jax.agent.networks import MATMUL_MAX_CHANNELS, MATMUL_STRIDED_CHANNELS, conv2d, make_networks, num_params
 from a2catvn_jax.agent.update import frames_per_update, make_update
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import NavEnv
@@ -214,3 +214,65 @@ def bench_network(resolution: int, frames: int, targets: int, repeats: int, over
     fps = {name: frames / float(np.median(t)) for name, t in times.items()}
     return {"resolution": resolution, "frames": frames, "targets": targets, "params": num_params(params),
             "jax_fps": fps["jax_fps"], "jax_per_frame_fps": fps["jax_per_frame_fps"], "torch_fps": fps.get("torch_fps")}
+
+
+def bench_stream_layers(resolution: int, frames: int, rounds: int, overrides=(), config=None) -> dict:
+    """Forward+backward milliseconds of each conv layer of the network's image stream
+    (conv1 on uint8 images scaled to [0, 1], conv2 on conv1's map; a ReLU and the mean
+    square as the loss; the kernel's gradient, and conv2's input gradient) on `frames`
+    images: by XLA's convolution, by matrix products (`networks.conv2d`), and by
+    PyTorch's `nn.Conv2d` (NCHW; when torch is installed), timed in turns for `rounds`
+    rounds, medians. {layer: {"xla": ms, "matmul": ms, "torch": ms, "auto": the impl
+    agent.conv_impl auto takes, "shape": text}}."""
+    agent = load_config(config, [f"env.render.image_size={resolution}", *overrides]).agent
+    sizes, padding = agent.conv_sizes(resolution), agent.conv_padding.upper()
+    channels = (3, *agent.conv_channels)
+    try:
+        import torch
+        import torch.nn.functional as F
+    except ImportError:
+        torch = None
+    out = {}
+    for i in range(2):
+        n, c, f = sizes[i], channels[i], channels[i + 1]
+        k, s = agent.conv_kernels[i], agent.conv_strides[i]
+        key = jax.random.PRNGKey(i)
+        x = (jax.random.randint(key, (frames, n, n, c), 0, 256).astype(jnp.uint8) if i == 0
+             else jax.random.normal(key, (frames, n, n, c)))
+        w = jax.random.normal(key, (k, k, c, f)) * 0.05
+        steps = {}
+        for impl in ("xla", "matmul"):
+            def loss(w, x, impl=impl):
+                x = x.astype(jnp.float32) / 255.0 if x.dtype == jnp.uint8 else x
+                return jnp.mean(jax.nn.relu(conv2d(x, w, s, padding, impl)) ** 2)
+            steps[impl] = functools.partial(jax.jit(jax.grad(loss, argnums=(0,) if i == 0 else (0, 1))), w, x)
+        if torch is not None:
+            conv = torch.nn.Conv2d(c, f, k, stride=s)
+            xt = torch.from_numpy(np.array(x)).permute(0, 3, 1, 2).contiguous().requires_grad_(i > 0)
+            pad = conv_padding_amounts(n, k, s) if padding == "SAME" else (0, 0)
+
+            def torch_step(conv=conv, xt=xt, pad=pad):
+                conv.zero_grad(set_to_none=True)
+                x = xt.float() / 255.0 if xt.dtype == torch.uint8 else xt
+                F.relu(conv(F.pad(x, pad * 2))).square().mean().backward()
+
+            steps["torch"] = torch_step
+        times = {name: [] for name in steps}
+        for step in steps.values():
+            jax.block_until_ready(step())
+        for _ in range(rounds):
+            for name, step in steps.items():
+                t0 = time.perf_counter()
+                jax.block_until_ready(step())
+                times[name].append(time.perf_counter() - t0)
+        suits = s * s * c <= MATMUL_MAX_CHANNELS or (s > 1 and c >= MATMUL_STRIDED_CHANNELS)
+        out[f"conv{i + 1}"] = {"shape": f"{k}x{k}/{s}, {c} -> {f} channels, {n}x{n} input",
+                               "auto": "matmul" if suits else "xla",
+                               **{name: 1000 * float(np.median(t)) for name, t in times.items()}}
+    return out
+
+
+def conv_padding_amounts(n: int, kernel: int, stride: int) -> tuple[int, int]:
+    """(before, after) padding of XLA's "SAME" for an n-pixel input."""
+    total = max((-(-n // stride) - 1) * stride + kernel - n, 0)
+    return total // 2, total - total // 2
