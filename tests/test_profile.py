@@ -186,3 +186,24 @@ def test_network_benchmark_compares_conv_impls(capsys, tmp_path):
     assert row["network"] == "default" and set(row["fps"]) == {"xla", "matmul"}
     assert all(v > 0 for v in row["fps"].values())
     assert "conv_impl=matmul" in capsys.readouterr().out
+
+
+def test_network_benchmark_times_each_pass_and_the_stream_layers(capsys, tmp_path):
+    """`benchmark network`: JAX as trained, JAX per frame and (when installed) PyTorch;
+    `--layers`: conv1 and conv2 of the image stream each way, with auto's choice."""
+    out = tmp_path / "rows.json"
+    small = ["--resolution", "16", "--frames", "4", "--targets", "2", "--repeats", "2", "--json", str(out),
+             "--set", *TINY_LEARNER]
+    benchmark.main(["network", *small])
+    (row,) = json.loads(out.read_text())
+    assert row["jax_fps"] > 0 and row["jax_per_frame_fps"] > 0
+    assert row["torch_fps"] is None or row["torch_fps"] > 0
+    benchmark.main(["network", "--layers", *small])
+    (row,) = json.loads(out.read_text())
+    layers = row["layers"]
+    assert set(layers) == {"conv1", "conv2"}
+    assert layers["conv1"]["shape"] == "8x8/4, 3 -> 4 channels, 16x16 input"
+    assert layers["conv2"]["shape"] == "4x4/2, 4 -> 8 channels, 4x4 input"
+    for r in layers.values():
+        assert r["xla"] > 0 and r["matmul"] > 0 and r["auto"] in ("xla", "matmul") and r.get("torch", 1) > 0
+    assert "conv2 (4x4/2, 4 -> 8 channels, 4x4 input): XLA convolution" in capsys.readouterr().out
