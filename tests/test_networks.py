@@ -314,6 +314,27 @@ def test_conv2d_by_matrix_products_is_xla_convolution(k, s, padding, size, cin, 
         networks.conv2d(x, kernel, s, padding, "matmul", "im2col")
 
 
+@pytest.mark.parametrize("impl,form", [("xla", None), ("matmul", "patches"), ("matmul", "shift")])
+@pytest.mark.parametrize("k,s,padding,size", [(8, 4, "SAME", 21), (7, 4, "VALID", 23), (3, 1, "SAME", 7)])
+def test_conv2d_of_uint8_images_is_that_of_the_same_values_as_floats(k, s, padding, size, impl, form):
+    """`conv2d` on uint8 input (conv1 keeps images uint8 up to the product) gives the
+    outputs and kernel gradient of the same values as float32, each way it computes."""
+    rng = np.random.default_rng(k * 100 + size)
+    image = jnp.asarray(rng.integers(0, 256, (2, size, size, 3), dtype=np.uint8))
+    kernel = jnp.asarray(rng.normal(size=(k, k, 3, 6)).astype(np.float32)) / 255.0
+
+    def out(kernel, x):
+        return networks.conv2d(x, kernel, s, padding, impl, form)
+
+    want, got = out(kernel, image.astype(jnp.float32)), out(kernel, image)
+    assert got.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-5)
+    probe = jnp.asarray(rng.normal(size=want.shape).astype(np.float32))
+    grad = lambda x: jax.grad(lambda w: jnp.sum(out(w, x) * probe))(kernel)  # noqa: E731
+    np.testing.assert_allclose(np.asarray(grad(image)), np.asarray(grad(image.astype(jnp.float32))), rtol=1e-5,
+                               atol=1e-3)
+
+
 @pytest.mark.parametrize("preset", [False, True])
 def test_conv_impls_are_the_same_network(preset):
     """agent.conv_impl changes how the convolutions are computed, not the network: the

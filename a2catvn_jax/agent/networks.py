@@ -139,8 +139,9 @@ def on_blocks(x, kernel, stride: int):
 
 
 def conv2d(x, kernel, stride: int = 1, padding="VALID", impl: str = "auto", form=None):
-    """2-D convolution of x [N, H, W, C] by kernel [k, k, C, F] (square kernel and
-    stride; padding as `conv_padding`) -> [N, H', W', F], by XLA's convolution ("xla"),
+    """2-D convolution of x [N, H, W, C] (float, or integer: converted to the kernel's
+    dtype) by kernel [k, k, C, F] (square kernel and stride; padding as `conv_padding`)
+    -> [N, H', W', F], by XLA's convolution ("xla"),
     by matrix products ("matmul", in the `form` "patches" or "shift", by default the one
     the layer's shape suits; see the module docstring), or "auto": on the CPU the one of
     the two that the layer's shape suits (see MATMUL_MAX_CHANNELS), XLA's convolution
@@ -152,6 +153,7 @@ def conv2d(x, kernel, stride: int = 1, padding="VALID", impl: str = "auto", form
         suits = stride * stride * c <= MATMUL_MAX_CHANNELS or (stride > 1 and c >= MATMUL_STRIDED_CHANNELS)
         impl = "matmul" if suits and jax.default_backend() == "cpu" else "xla"
     if impl == "xla":
+        x = x.astype(kernel.dtype)
         return jax.lax.conv_general_dilated(x, kernel, (stride, stride), pads, dimension_numbers=_DIMS)
     if impl != "matmul":
         raise ValueError(f"conv impl must be 'auto', 'xla' or 'matmul', got {impl!r}")
@@ -168,11 +170,14 @@ def conv2d(x, kernel, stride: int = 1, padding="VALID", impl: str = "auto", form
         form = "shift" if 4 * f <= c else "patches"
     elif form not in ("shift", "patches"):
         raise ValueError(f"conv form must be 'patches' or 'shift', got {form!r}")
+    # An integer input (uint8 images) is rearranged as it is, a quarter of float32's bytes,
+    # and converted just before the product.
     if form == "shift":  # few outputs: every offset's outputs at every input pixel, shifted and summed
-        z = jnp.dot(x, kernel.transpose(2, 0, 1, 3).reshape(c, k * k * f)).reshape(n, oh + k - 1, ow + k - 1, k * k, f)
+        z = jnp.dot(x.astype(kernel.dtype), kernel.transpose(2, 0, 1, 3).reshape(c, k * k * f))
+        z = z.reshape(n, oh + k - 1, ow + k - 1, k * k, f)
         return sum(z[:, i : i + oh, j : j + ow, i * k + j] for i, j in taps)
     patches = jnp.concatenate([x[:, i : i + oh, j : j + ow] for i, j in taps], -1) if k > 1 else x
-    return jnp.dot(patches, kernel.reshape(k * k * c, f))
+    return jnp.dot(patches.astype(kernel.dtype), kernel.reshape(k * k * c, f))
 
 
 class Conv(nn.Module):
@@ -259,7 +264,9 @@ class Conv1(nn.Module):
         k, s = self.kernel_size, self.stride
         kernel = self.param("kernel", self.kernel_init, (k, k, c, self.features))
         bias = self.param("bias", nn.initializers.zeros, (self.features,))
-        x = image.astype(jnp.float32) * (1.0 / 255.0)
+        # conv(image / 255, kernel) = conv(image, kernel / 255): the image stays uint8 through
+        # the padding and the rearranging into blocks and patches (a quarter of the bytes).
+        x, scaled = image, kernel * (1.0 / 255.0)
         if self.padding == "same":
             hp, wp = -(-h // s) * s, -(-w // s) * s
             x = jnp.pad(x, ((0, 0), (k - s, hp - h), (k - s, wp - w), (0, 0)))
@@ -267,9 +274,9 @@ class Conv1(nn.Module):
             oh, ow = (h - k) // s + 1, (w - k) // s + 1
             x = x[:, : (oh - 1) * s + k, : (ow - 1) * s + k]
         if self.space_to_depth:
-            y = conv2d(*on_blocks(x, kernel, s), 1, "VALID", self.impl)
+            y = conv2d(*on_blocks(x, scaled, s), 1, "VALID", self.impl)
         else:
-            y = conv2d(x, kernel, s, "VALID", self.impl)
+            y = conv2d(x, scaled, s, "VALID", self.impl)
         return y + bias
 
 
