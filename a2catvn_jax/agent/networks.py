@@ -33,7 +33,8 @@ With "same" each layer gives ceil(n / s) outputs: conv2..conv4 pad as `lax`'s "S
 pixels at the top/left and the rest at the bottom/right, so that each output pixel's
 window ends where its own stride block ends (8x8/4: 4 pixels at the top/left).
 
-conv1 works on uint8 images. With `space_to_depth` (conv1's kernel k a multiple of its
+conv1 works on uint8 images, which stay uint8 through its padding and rearranging
+(its kernel is scaled by 1/255 instead of the image). With `space_to_depth` (conv1's kernel k a multiple of its
 stride s) it is computed as a (k/s)x(k/s)/1 conv on s x s pixel blocks (s*s*3
 channels) with the same kernel rearranged: the same function, which some backends run
 faster (docs/benchmarks.md).
