@@ -11,3 +11,8 @@ from __future__ import annotations
 
 class UserError(Exception):
     """Input the package cannot use; the message says which and why."""
+
+
+class Interrupted(UserError, RuntimeError):
+    """Stopped by Ctrl-C or SIGTERM, after saving what resumes the work (the command
+    lines exit with status 130)."""

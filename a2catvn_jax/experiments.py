@@ -62,6 +62,7 @@ import sys
 
 from a2catvn_jax import cli
 from a2catvn_jax.config import ConfigError
+from a2catvn_jax.errors import Interrupted
 from a2catvn_jax.run import experiments as ex
 from a2catvn_jax.run.experiments import EXPERIMENTS, ExperimentError
 
@@ -111,7 +112,8 @@ def main(argv=None) -> None:
     exp = EXPERIMENTS[args.name[0]]
     scale = args.scale or "cpu"
     command = "python -m a2catvn_jax.experiments " + " ".join(argv if argv is not None else sys.argv[1:])
-    with cli.errors(parser, code=1), cli.errors(parser, code=2, kinds=(ConfigError, ExperimentError, ValueError)):
+    with cli.errors(parser, code=1), cli.errors(parser, code=2, kinds=(ConfigError, ExperimentError, ValueError)), \
+            cli.errors(parser, code=130, kinds=(Interrupted,)):
         run_seeds = args.seeds
         if args.stored_seeds:
             stored = ex.stored_seeds(exp, scale, store, cli.overrides_of(args))

@@ -16,6 +16,7 @@ from scipy import stats
 
 from a2catvn_jax import experiments as cli
 from a2catvn_jax.config import load_config, save_config
+from a2catvn_jax.errors import Interrupted
 from a2catvn_jax.run import experiments as ex
 from tiny import TINY_LEARNER
 
@@ -333,8 +334,8 @@ def test_an_interrupted_run_stops_the_runner_and_the_same_command_resumes_it(tmp
     exp = tiny((ex.Variant("a"),), name="tiny_interrupted")
     real = ex.train
     monkeypatch.setattr(ex, "train", lambda *args, **kw: real(*args, **kw, max_updates=1))
-    with pytest.raises(ex.ExperimentError, match=r"interrupted: a, seed 0 stopped at update 1 of 2 with a "
-                                                 r"checkpoint in .*seed_0; the same command resumes it"):
+    with pytest.raises(Interrupted, match=r"interrupted: a, seed 0 stopped at update 1 of 2 with a "
+                                         r"checkpoint in .*seed_0; the same command resumes it"):
         run_tiny(tmp_path, exp, seeds=(0,))
     (run,) = ex.plan(exp, "cpu", [0], tmp_path / "runs", TINY, tmp_path / "docs" / "experiments" / "runs")
     assert not run.is_stored()

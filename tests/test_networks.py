@@ -335,6 +335,43 @@ def test_conv2d_of_uint8_images_is_that_of_the_same_values_as_floats(k, s, paddi
                                atol=1e-3)
 
 
+@pytest.mark.parametrize("impl,s2d", [("xla", False), ("matmul", False), ("matmul", True)])
+def test_conv1_keeps_the_image_uint8_up_to_the_product(impl, s2d):
+    """`Conv1` pads and rearranges the uint8 image as uint8 (a quarter of float32's
+    bytes), and its outputs and kernel gradient are those of the image scaled to [0, 1]
+    first and convolved by XLA (how conv1 was computed before)."""
+    rng = np.random.default_rng(5)
+    image = jnp.asarray(rng.integers(0, 256, (2, 32, 32, 3), dtype=np.uint8))
+    layer = networks.Conv1(6, s2d, 8, 4, "same", impl=impl)
+    params = layer.init(jax.random.PRNGKey(0), image)
+
+    def eqns(jaxpr):  # every equation, those of nested programs (jit, custom rules) included
+        for e in jaxpr.eqns:
+            yield e
+            for v in e.params.values():
+                for sub in v if isinstance(v, (tuple, list)) else (v,):
+                    if hasattr(sub, "eqns") or hasattr(sub, "jaxpr"):
+                        yield from eqns(getattr(sub, "jaxpr", sub))
+
+    # the image-sized rearrangements (the kernel's are smaller)
+    moved = [e for e in eqns(jax.make_jaxpr(layer.apply)(params, image).jaxpr)
+             if e.primitive.name in ("pad", "transpose", "concatenate") and e.outvars[0].aval.size >= image.size]
+    assert moved and all(e.outvars[0].aval.dtype == jnp.uint8 for e in moved), [
+        (e.primitive.name, e.outvars[0].aval.dtype) for e in moved]
+
+    def before(p):
+        x = jnp.pad(image.astype(jnp.float32) / 255.0, ((0, 0), (4, 0), (4, 0), (0, 0)))
+        y = jax.lax.conv_general_dilated(x, p["params"]["kernel"], (4, 4), "VALID",
+                                         dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        return y + p["params"]["bias"]
+
+    probe = jnp.asarray(rng.normal(size=(2, 8, 8, 6)).astype(np.float32))
+    np.testing.assert_allclose(np.asarray(layer.apply(params, image)), np.asarray(before(params)), rtol=1e-5, atol=1e-6)
+    g_now = jax.grad(lambda p: jnp.sum(layer.apply(p, image) * probe))(params)["params"]["kernel"]
+    g_before = jax.grad(lambda p: jnp.sum(before(p) * probe))(params)["params"]["kernel"]
+    np.testing.assert_allclose(np.asarray(g_now), np.asarray(g_before), rtol=1e-4, atol=1e-5)
+
+
 @pytest.mark.parametrize("preset", [False, True])
 def test_conv_impls_are_the_same_network(preset):
     """agent.conv_impl changes how the convolutions are computed, not the network: the
@@ -495,18 +532,23 @@ def test_the_pytorch_reference_has_the_networks_layers(preset):
     """`benchmark network`'s PyTorch model of a configuration (`bench.torch_reference`)
     has the JAX network's conv base, dense layer and vision heads: as many parameters,
     but for the default heads' upsampling biases (one per channel in PyTorch's
-    transposed convolution, one per channel and sub-pixel in the sub-pixel convolution)."""
+    transposed convolution, one per channel and sub-pixel in the sub-pixel convolution),
+    and outputs of the same shapes (also with class-id segmentation)."""
     torch_reference = pytest.importorskip("a2catvn_jax.bench.torch_reference", reason="PyTorch: the bench extra")
     import torch
 
-    cfg = _preset(84) if preset else load_config(None, ["env.render.image_size=84"])
-    model = torch_reference.TorchNetwork(cfg.agent, 84)
-    params = jax.eval_shape(networks.make_networks(cfg, ACTIONS).init, jax.random.PRNGKey(0))["params"]
-    layers = ("conv1", "conv2", "conv3", "conv4", "dense", "vn")
-    bias_difference = 0 if preset else 3 * sum(torch_reference.UPSAMPLE_HIDDEN.values())
-    assert sum(p.numel() for p in model.parameters()) + bias_difference == sum(
-        networks.num_params(params[k]) for k in layers)
-    feats, heads = model(*(torch.zeros((2, 3, 84, 84), dtype=torch.uint8),) * 2)
-    assert tuple(feats.shape) == (2, cfg.agent.dense_size)
-    assert {k: tuple(v.shape[:2]) for k, v in heads.items()} == {
-        "depth": (2, 1), "segmentation": (2, 3), "target_segmentation": (2, 3)}
+    for extra in ([], ["agent.segmentation_loss=cross_entropy"]):
+        cfg = _preset(84, *extra) if preset else load_config(None, ["env.render.image_size=84", *extra])
+        model = torch_reference.TorchNetwork(cfg)
+        net = networks.make_networks(cfg, ACTIONS)
+        params = jax.eval_shape(net.init, jax.random.PRNGKey(0))
+        layers = ("conv1", "conv2", "conv3", "conv4", "dense", "vn")
+        bias_difference = 0 if preset else 3 * sum(networks.VNHeads.HIDDEN.values())
+        assert sum(p.numel() for p in model.parameters()) + bias_difference == sum(
+            networks.num_params(params["params"][k]) for k in layers)
+        feats, heads = model(*(torch.zeros((2, 3, 84, 84), dtype=torch.uint8),) * 2)
+        want = _shapes(net, 84)
+        assert tuple(feats.shape) == want["features"]
+        for name, out in heads.items():  # NCHW against NHWC (depth without a channel axis)
+            n, ch, h, w = out.shape
+            assert (n, h, w) + ((ch,) if name != "depth" else ()) == want[name], name

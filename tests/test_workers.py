@@ -6,6 +6,7 @@ exit status and output."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -84,10 +85,9 @@ time.sleep(60)
 """
 
 POOL = """
-import signal, sys
+import sys
 from pathlib import Path
 from a2catvn_jax.run import workers
-signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal, also when started in the background
 tmp = Path(sys.argv[1])
 try:
     workers.run_pool([[sys.executable, "-c", sys.argv[2], str(tmp / f"child{i}")] for i in range(3)], 1,
@@ -97,20 +97,44 @@ except workers.PoolInterrupted as e:
 """
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP], ids=["SIGTERM", "Ctrl-C", "hang-up"])
 def test_a_signal_to_the_pool_stops_its_running_processes_once_each(tmp_path, sig):
-    """SIGTERM or Ctrl-C to the pool's process: each running process gets one SIGTERM
-    (and the pool waits for it), no further command starts, and the pool raises
+    """SIGTERM to the pool, or Ctrl-C or a hang-up to its whole process group (as a
+    terminal sends them): each running process gets one SIGTERM and no other signal (it
+    has a session of its own; a child that also got SIGINT or SIGHUP would die without
+    writing "stopped"), the pool waits for it, starts no further command, and raises
     `PoolInterrupted` with what it stopped."""
     pool = subprocess.Popen([sys.executable, "-c", POOL, str(tmp_path), CHILD], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
     child = tmp_path / "child0"
     deadline = time.time() + 60
     while not (child.exists() and child.read_text()) and time.time() < deadline:
         time.sleep(0.05)
-    pool.send_signal(sig)
+    if sig == signal.SIGTERM:
+        pool.send_signal(sig)
+    else:
+        os.killpg(pool.pid, sig)
     out, err = pool.communicate(timeout=60)
     assert pool.returncode == 0, err
     assert child.read_text() == "started stopped"
     assert not (tmp_path / "child1").exists()
-    assert out.strip() == f"interrupted ({sig.name}): asked the 1 running process(es) to stop, 2 command(s) not started"
+    assert out.strip() == (f"interrupted ({sig.name}): asked the 1 running process(es) to stop, 2 command(s) not "
+                           f"started; the same command resumes them")
+
+
+def test_a_second_signal_kills_the_running_processes(tmp_path):
+    """A process that does not stop on its SIGTERM is killed by a second signal to the pool."""
+    stubborn = CHILD.replace('sys.exit(0)', 'None')
+    pool = subprocess.Popen([sys.executable, "-c", POOL, str(tmp_path), stubborn], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    child = tmp_path / "child0"
+    deadline = time.time() + 60
+    while not (child.exists() and child.read_text()) and time.time() < deadline:
+        time.sleep(0.05)
+    pool.send_signal(signal.SIGTERM)
+    while child.read_text() != "started stopped" and time.time() < deadline:
+        time.sleep(0.05)
+    t0 = time.time()
+    pool.send_signal(signal.SIGTERM)
+    out, _ = pool.communicate(timeout=60)
+    assert time.time() - t0 < 30 and out.startswith("interrupted (SIGTERM)")

@@ -9,7 +9,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from a2catvn_jax.agent.networks import MATMUL_MAX_CHANNELS, MATMUL_STRIDED_CHANNELS, conv2d, make_networks, num_params
+from a2catvn_jax.agent.networks import (
+    MATMUL_MAX_CHANNELS,
+    MATMUL_STRIDED_CHANNELS,
+    Conv1,
+    conv2d,
+    conv_padding,
+    make_networks,
+    num_params,
+)
 from a2catvn_jax.agent.update import frames_per_update, make_update
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import NavEnv
@@ -201,8 +209,8 @@ def bench_network(resolution: int, frames: int, targets: int, repeats: int, over
     except ImportError:
         pass
     else:
-        agent = load_config(config, [f"env.render.image_size={resolution}", *overrides]).agent
-        steps["torch_fps"] = torch_reference.step_fn(agent, resolution, frames)
+        cfg = load_config(config, [f"env.render.image_size={resolution}", *overrides])
+        steps["torch_fps"] = torch_reference.step_fn(cfg, frames)
     times = {name: [] for name in steps}
     for step in steps.values():  # compile / warm up
         jax.block_until_ready(step())
@@ -218,14 +226,15 @@ def bench_network(resolution: int, frames: int, targets: int, repeats: int, over
 
 def bench_stream_layers(resolution: int, frames: int, rounds: int, overrides=(), config=None) -> dict:
     """Forward+backward milliseconds of each conv layer of the network's image stream
-    (conv1 on uint8 images scaled to [0, 1], conv2 on conv1's map; a ReLU and the mean
-    square as the loss; the kernel's gradient, and conv2's input gradient) on `frames`
-    images: by XLA's convolution, by matrix products (`networks.conv2d`), and by
-    PyTorch's `nn.Conv2d` (NCHW; when torch is installed), timed in turns for `rounds`
-    rounds, medians. {layer: {"xla": ms, "matmul": ms, "torch": ms, "auto": the impl
-    agent.conv_impl auto takes, "shape": text}}."""
+    (`networks.Conv1` on uint8 images, as the network runs it; conv2 on conv1's map; a
+    ReLU and the mean square as the loss; the kernel's gradient, and conv2's input
+    gradient) on `frames` images: by XLA's convolution, by matrix products, and by
+    PyTorch's `nn.Conv2d` (NCHW, the image scaled to [0, 1] first, the same padding;
+    when torch is installed), timed in turns for `rounds` rounds, medians. {layer:
+    {"xla": ms, "matmul": ms, "torch": ms, "auto": the impl agent.conv_impl auto takes,
+    "shape": text}}."""
     agent = load_config(config, [f"env.render.image_size={resolution}", *overrides]).agent
-    sizes, padding = agent.conv_sizes(resolution), agent.conv_padding.upper()
+    sizes, padding = agent.conv_sizes(resolution), agent.conv_padding
     channels = (3, *agent.conv_channels)
     try:
         import torch
@@ -237,19 +246,29 @@ def bench_stream_layers(resolution: int, frames: int, rounds: int, overrides=(),
         n, c, f = sizes[i], channels[i], channels[i + 1]
         k, s = agent.conv_kernels[i], agent.conv_strides[i]
         key = jax.random.PRNGKey(i)
-        x = (jax.random.randint(key, (frames, n, n, c), 0, 256).astype(jnp.uint8) if i == 0
-             else jax.random.normal(key, (frames, n, n, c)))
-        w = jax.random.normal(key, (k, k, c, f)) * 0.05
         steps = {}
         for impl in ("xla", "matmul"):
-            def loss(w, x, impl=impl):
-                x = x.astype(jnp.float32) / 255.0 if x.dtype == jnp.uint8 else x
-                return jnp.mean(jax.nn.relu(conv2d(x, w, s, padding, impl)) ** 2)
-            steps[impl] = functools.partial(jax.jit(jax.grad(loss, argnums=(0,) if i == 0 else (0, 1))), w, x)
+            if i == 0:
+                x = jax.random.randint(key, (frames, n, n, c), 0, 256).astype(jnp.uint8)
+                layer = Conv1(f, agent.space_to_depth, k, s, padding, impl=impl)
+                params = layer.init(key, x[:1])
+                loss = functools.partial(lambda layer, p, x: jnp.mean(jax.nn.relu(layer.apply(p, x)) ** 2), layer)
+                steps[impl] = functools.partial(jax.jit(jax.grad(loss)), params, x)
+            else:
+                x = jax.random.normal(key, (frames, n, n, c))
+                w = jax.random.normal(key, (k, k, c, f)) * 0.05
+                loss = functools.partial(
+                    lambda impl, w, x: jnp.mean(jax.nn.relu(conv2d(x, w, s, padding.upper(), impl)) ** 2), impl)
+                steps[impl] = functools.partial(jax.jit(jax.grad(loss, argnums=(0, 1))), w, x)
         if torch is not None:
+            if padding == "valid":
+                pad = (0, 0)
+            elif i == 0:  # networks.Conv1: kernel - stride pixels at the top/left, the rest at the bottom/right
+                pad = (k - s, -(-n // s) * s - n)
+            else:
+                pad = conv_padding((n,), k, s, "SAME")[0]
             conv = torch.nn.Conv2d(c, f, k, stride=s)
             xt = torch.from_numpy(np.array(x)).permute(0, 3, 1, 2).contiguous().requires_grad_(i > 0)
-            pad = conv_padding_amounts(n, k, s) if padding == "SAME" else (0, 0)
 
             def torch_step(conv=conv, xt=xt, pad=pad):
                 conv.zero_grad(set_to_none=True)
@@ -265,14 +284,9 @@ def bench_stream_layers(resolution: int, frames: int, rounds: int, overrides=(),
                 t0 = time.perf_counter()
                 jax.block_until_ready(step())
                 times[name].append(time.perf_counter() - t0)
-        suits = s * s * c <= MATMUL_MAX_CHANNELS or (s > 1 and c >= MATMUL_STRIDED_CHANNELS)
+        blocks = s * s * c
+        suits = blocks <= MATMUL_MAX_CHANNELS or (s > 1 and c >= MATMUL_STRIDED_CHANNELS)
         out[f"conv{i + 1}"] = {"shape": f"{k}x{k}/{s}, {c} -> {f} channels, {n}x{n} input",
                                "auto": "matmul" if suits else "xla",
                                **{name: 1000 * float(np.median(t)) for name, t in times.items()}}
     return out
-
-
-def conv_padding_amounts(n: int, kernel: int, stride: int) -> tuple[int, int]:
-    """(before, after) padding of XLA's "SAME" for an n-pixel input."""
-    total = max((-(-n // stride) - 1) * stride + kernel - n, 0)
-    return total // 2, total - total // 2

@@ -59,7 +59,7 @@ from scipy import stats
 
 from a2catvn_jax.agent.update import total_updates
 from a2catvn_jax.config import CONFIGS, load_config, save_config, to_dict
-from a2catvn_jax.errors import UserError
+from a2catvn_jax.errors import Interrupted, UserError
 from a2catvn_jax.run.checkpoint import CONFIG_FILE, Checkpointer, config_differences, read_run_config
 from a2catvn_jax.run.evaluation import evaluate_baseline, evaluate_sets, to_json
 from a2catvn_jax.run.logger import read_jsonl
@@ -367,7 +367,7 @@ def train_run(run: Run, log: Callable[[str], None]) -> float:
     spent = json.loads(timing.read_text())["seconds"] if timing.exists() else 0.0
     timing.write_text(json.dumps({"seconds": spent + seconds}) + "\n")
     if int(state.update) < total_updates(run.cfg):  # Ctrl-C or SIGTERM: checkpointed, not finished
-        raise ExperimentError(f"interrupted: {run.name} stopped at update {int(state.update)} of "
+        raise Interrupted(f"interrupted: {run.name} stopped at update {int(state.update)} of "
                               f"{total_updates(run.cfg)} with a checkpoint in {run.workdir}; the same command "
                               f"resumes it")
     return seconds

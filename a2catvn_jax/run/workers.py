@@ -22,19 +22,18 @@ import time
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-from a2catvn_jax.errors import UserError
+from a2catvn_jax.errors import Interrupted, UserError
 
 
 class WorkerError(UserError, ValueError):
     """A pool that cannot be set up (more processes than cores, no affinity support)."""
 
 
-class PoolInterrupted(UserError, RuntimeError):
-    """The pool was stopped by Ctrl-C or SIGTERM; its running processes were asked to stop."""
+class PoolInterrupted(Interrupted):
+    """The pool was stopped by Ctrl-C, SIGTERM or SIGHUP; its running processes were asked to stop."""
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt(signal.Signals(signum).name)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def available_cores() -> list[int]:
@@ -89,30 +88,39 @@ def run_pool(commands: Sequence[Sequence[str]], jobs: int, logs: Sequence[Path],
     """Run `commands` (argument lists), at most `jobs` at once, each pinned to one of
     `core_groups(jobs)` that no running command holds, its stdout and stderr written to
     the matching path of `logs`. Calls `on_start(i, cores)` and `on_end(i, exit code)`;
-    returns the exit codes in the order of `commands`. Ctrl-C or SIGTERM sends each
-    running process one SIGTERM (a training run checkpoints and stops on it), waits for
-    them and raises `PoolInterrupted`."""
+    returns the exit codes in the order of `commands`.
+
+    Ctrl-C, SIGTERM or SIGHUP to the pool (called from the main thread) starts no further
+    command, sends each running process one SIGTERM (a training run checkpoints and
+    stops on it), waits for them and raises `PoolInterrupted`; a second signal kills
+    them. Each process runs in a session of its own, so a terminal's Ctrl-C or hang-up
+    reaches the pool alone (a second signal would abort a training run without its
+    checkpoint). From another thread the signals are not the pool's to take, and the
+    processes stay in the caller's session."""
     if len(logs) != len(commands):
         raise WorkerError(f"{len(commands)} commands but {len(logs)} log paths")
     free = core_groups(jobs)
     waiting = list(range(len(commands)))
     running: dict[int, tuple[subprocess.Popen, list[int], object]] = {}
     codes: list[int] = [0] * len(commands)
-    # SIGTERM (what `timeout`, `kill` and job schedulers send) stops the pool like Ctrl-C:
-    # without this the pool would die at once and leave its processes running.
+    signals: list[str] = []  # the stop signals received, in order
     main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
+    previous = {}
+    if main_thread:
+        for sig in STOP_SIGNALS:
+            previous[sig] = signal.signal(sig, lambda signum, frame: signals.append(signal.Signals(signum).name))
     try:
-        while waiting or running:
-            while waiting and free:
+        while (waiting or running) and not signals:
+            while waiting and free and not signals:
                 i, cores = waiting.pop(0), free.pop(0)
                 Path(logs[i]).parent.mkdir(parents=True, exist_ok=True)
                 out = open(logs[i], "w")
-                # A session of its own: Ctrl-C at the terminal reaches the pool alone, which
-                # then stops each process with one SIGTERM (a second signal would abort a
-                # training run without its checkpoint).
-                proc = subprocess.Popen(pinned(commands[i], cores), stdout=out, stderr=subprocess.STDOUT,
-                                        env=worker_env(cores), start_new_session=True)
+                try:
+                    proc = subprocess.Popen(pinned(commands[i], cores), stdout=out, stderr=subprocess.STDOUT,
+                                            env=worker_env(cores), start_new_session=main_thread)
+                except BaseException:
+                    out.close()
+                    raise
                 running[i] = (proc, cores, out)
                 if on_start:
                     on_start(i, cores)
@@ -127,22 +135,27 @@ def run_pool(commands: Sequence[Sequence[str]], jobs: int, logs: Sequence[Path],
                 codes[i] = code
                 if on_end:
                     on_end(i, code)
-    except KeyboardInterrupt as e:
-        alive = sum(proc.poll() is None for proc, _, _ in running.values())
-        raise PoolInterrupted(f"interrupted ({str(e) or 'SIGINT'}): asked the {alive} running process(es) to stop, "
-                              f"{len(waiting)} command(s) not started") from None
-    finally:  # interrupted: let the others stop (training checkpoints on SIGINT / SIGTERM)
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-        for proc, _, out in running.values():
+        if signals:
+            alive = sum(proc.poll() is None for proc, _, _ in running.values())
+            raise PoolInterrupted(f"interrupted ({signals[0]}): asked the {alive} running process(es) to stop, "
+                                  f"{len(waiting)} command(s) not started; the same command resumes them")
+    finally:  # let the running processes stop (training checkpoints on SIGTERM); a second signal kills them
+        for proc, _, _ in running.values():
             if proc.poll() is None:
                 proc.terminate()
+        stopping = len(signals)
+        deadline = time.monotonic() + 120
         for proc, _, out in running.values():
-            try:
-                proc.wait(timeout=120)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            while proc.poll() is None:
+                if len(signals) > max(stopping, 1) or time.monotonic() > deadline:
+                    proc.kill()
+                try:
+                    proc.wait(timeout=0.2)
+                except subprocess.TimeoutExpired:
+                    pass
             out.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
     return codes
 
 
