@@ -97,6 +97,17 @@ except workers.PoolInterrupted as e:
 """
 
 
+def _pool_with_a_running_child(tmp_path, child_code):
+    """The POOL script in a session of its own, once its first child has started."""
+    pool = subprocess.Popen([sys.executable, "-c", POOL, str(tmp_path), child_code], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    child = tmp_path / "child0"
+    deadline = time.time() + 60
+    while not (child.exists() and child.read_text()) and time.time() < deadline:
+        time.sleep(0.05)
+    return pool, child
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP], ids=["SIGTERM", "Ctrl-C", "hang-up"])
 def test_a_signal_to_the_pool_stops_its_running_processes_once_each(tmp_path, sig):
     """SIGTERM to the pool, or Ctrl-C or a hang-up to its whole process group (as a
@@ -104,12 +115,7 @@ def test_a_signal_to_the_pool_stops_its_running_processes_once_each(tmp_path, si
     has a session of its own; a child that also got SIGINT or SIGHUP would die without
     writing "stopped"), the pool waits for it, starts no further command, and raises
     `PoolInterrupted` with what it stopped."""
-    pool = subprocess.Popen([sys.executable, "-c", POOL, str(tmp_path), CHILD], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    child = tmp_path / "child0"
-    deadline = time.time() + 60
-    while not (child.exists() and child.read_text()) and time.time() < deadline:
-        time.sleep(0.05)
+    pool, child = _pool_with_a_running_child(tmp_path, CHILD)
     if sig == signal.SIGTERM:
         pool.send_signal(sig)
     else:
@@ -124,13 +130,8 @@ def test_a_signal_to_the_pool_stops_its_running_processes_once_each(tmp_path, si
 
 def test_a_second_signal_kills_the_running_processes(tmp_path):
     """A process that does not stop on its SIGTERM is killed by a second signal to the pool."""
-    stubborn = CHILD.replace('sys.exit(0)', 'None')
-    pool = subprocess.Popen([sys.executable, "-c", POOL, str(tmp_path), stubborn], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    child = tmp_path / "child0"
+    pool, child = _pool_with_a_running_child(tmp_path, CHILD.replace('sys.exit(0)', 'None'))
     deadline = time.time() + 60
-    while not (child.exists() and child.read_text()) and time.time() < deadline:
-        time.sleep(0.05)
     pool.send_signal(signal.SIGTERM)
     while child.read_text() != "started stopped" and time.time() < deadline:
         time.sleep(0.05)

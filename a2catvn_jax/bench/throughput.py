@@ -169,6 +169,21 @@ def _network_pass(resolution: int, frames: int, overrides=(), config=None):
     return net.init(k3), jax.jit(jax.grad(loss)), rgb, target_rgb
 
 
+def _median_seconds(steps: dict, rounds: int) -> dict:
+    """{name: median seconds of one call} of the callables `steps`, each called once to
+    compile or warm up, then timed in turns, one call of each per round, for `rounds`
+    rounds (so a slow spell of a shared machine slows all of them)."""
+    for step in steps.values():
+        jax.block_until_ready(step())
+    times = {name: [] for name in steps}
+    for _ in range(rounds):
+        for name, step in steps.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(step())
+            times[name].append(time.perf_counter() - t0)
+    return {name: float(np.median(t)) for name, t in times.items()}
+
+
 def bench_conv_impls(resolution: int, frames: int, targets: int, rounds: int, impls, overrides=(), config=None) -> dict:
     """Forward+backward frames/s of the network as the update runs it (see
     `bench_network`) with each `agent.conv_impl` of `impls`, compiled first and then
@@ -178,14 +193,7 @@ def bench_conv_impls(resolution: int, frames: int, targets: int, rounds: int, im
     for impl in impls:
         params, grad, rgb, target_rgb = _network_pass(resolution, frames, [*overrides, f"agent.conv_impl={impl}"], config)
         steps[impl] = functools.partial(grad, params, rgb, target_rgb[:targets], jnp.arange(frames) % targets)
-        jax.block_until_ready(steps[impl]())
-    times = {impl: [] for impl in impls}
-    for _ in range(rounds):
-        for impl, step in steps.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(step())
-            times[impl].append(time.perf_counter() - t0)
-    return {impl: frames / float(np.median(t)) for impl, t in times.items()}
+    return {impl: frames / seconds for impl, seconds in _median_seconds(steps, rounds).items()}
 
 
 def bench_network(resolution: int, frames: int, targets: int, repeats: int, overrides=(), config=None,
@@ -211,15 +219,7 @@ def bench_network(resolution: int, frames: int, targets: int, repeats: int, over
     else:
         cfg = load_config(config, [f"env.render.image_size={resolution}", *overrides])
         steps["torch_fps"] = torch_reference.step_fn(cfg, frames)
-    times = {name: [] for name in steps}
-    for step in steps.values():  # compile / warm up
-        jax.block_until_ready(step())
-    for _ in range(repeats):
-        for name, step in steps.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(step())
-            times[name].append(time.perf_counter() - t0)
-    fps = {name: frames / float(np.median(t)) for name, t in times.items()}
+    fps = {name: frames / seconds for name, seconds in _median_seconds(steps, repeats).items()}
     return {"resolution": resolution, "frames": frames, "targets": targets, "params": num_params(params),
             "jax_fps": fps["jax_fps"], "jax_per_frame_fps": fps["jax_per_frame_fps"], "torch_fps": fps.get("torch_fps")}
 
@@ -276,17 +276,10 @@ def bench_stream_layers(resolution: int, frames: int, rounds: int, overrides=(),
                 F.relu(conv(F.pad(x, pad * 2))).square().mean().backward()
 
             steps["torch"] = torch_step
-        times = {name: [] for name in steps}
-        for step in steps.values():
-            jax.block_until_ready(step())
-        for _ in range(rounds):
-            for name, step in steps.items():
-                t0 = time.perf_counter()
-                jax.block_until_ready(step())
-                times[name].append(time.perf_counter() - t0)
+        seconds = _median_seconds(steps, rounds)
         blocks = s * s * c
         suits = blocks <= MATMUL_MAX_CHANNELS or (s > 1 and c >= MATMUL_STRIDED_CHANNELS)
         out[f"conv{i + 1}"] = {"shape": f"{k}x{k}/{s}, {c} -> {f} channels, {n}x{n} input",
                                "auto": "matmul" if suits else "xla",
-                               **{name: 1000 * float(np.median(t)) for name, t in times.items()}}
+                               **{name: 1000 * t for name, t in seconds.items()}}
     return out
