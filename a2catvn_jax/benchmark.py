@@ -226,8 +226,7 @@ def _train_children(args, name: str, overrides, settings: list, jobs: int, tmp: 
             oom = " (the kernel's out-of-memory killer sends it)" if codes[i] == -9 else ""
             raise workers.WorkerError(f"a benchmark process was killed by signal {-codes[i]}{oom}: "
                                       f"{' '.join(commands[i][3:])}")
-        tail = logs[i].read_text().strip().splitlines()[-1:] or ["(no output)"]
-        raise workers.WorkerError(f"a benchmark process failed (exit status {codes[i]}): {tail[0]}")
+        raise workers.WorkerError(f"a benchmark process failed (exit status {codes[i]}): {workers.last_line(logs[i])}")
     return [json.loads(p.read_text())[0] for p in out]
 
 
@@ -333,8 +332,8 @@ def _render_table(args, overrides) -> list:
                         code = subprocess.run(workers.pinned(command, cores), stdout=f, stderr=subprocess.STDOUT,
                                               env=workers.worker_env(cores)).returncode
                     if code:
-                        tail = log.read_text().strip().splitlines()[-1:] or ["(no output)"]
-                        raise workers.WorkerError(f"render: the {renderer} process failed (exit status {code}): {tail[0]}")
+                        raise workers.WorkerError(f"render: the {renderer} process failed (exit status {code}): "
+                                                  f"{workers.last_line(log)}")
                     r = json.loads(out.read_text())
                     geom = np.load(str(out) + ".npy")
                     if renderer == "raycast":

@@ -139,3 +139,12 @@ def test_a_second_signal_kills_the_running_processes(tmp_path):
     pool.send_signal(signal.SIGTERM)
     out, _ = pool.communicate(timeout=60)
     assert time.time() - t0 < 30 and out.startswith("interrupted (SIGTERM)")
+
+
+def test_last_line_of_a_log(tmp_path):
+    log = tmp_path / "a.log"
+    assert workers.last_line(log) == "(no output)"  # never written
+    log.write_text("\n  \n")
+    assert workers.last_line(log) == "(no output)"
+    log.write_text("Traceback ...\nValueError: bad\n\n")
+    assert workers.last_line(log) == "ValueError: bad"

@@ -159,6 +159,12 @@ def run_pool(commands: Sequence[Sequence[str]], jobs: int, logs: Sequence[Path],
     return codes
 
 
+def last_line(log: Path) -> str:
+    """The last non-empty line a process wrote to `log` (what names its error), or "(no output)"."""
+    lines = Path(log).read_text().strip().splitlines() if Path(log).exists() else []
+    return lines[-1] if lines else "(no output)"
+
+
 def _exec_pinned(argv: Sequence[str]) -> None:
     """`python -m a2catvn_jax.run.workers CORES COMMAND...`: pin this process to CORES
     (comma-separated) and replace it with COMMAND."""
