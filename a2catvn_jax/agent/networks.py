@@ -120,6 +120,19 @@ MATMUL_MAX_CHANNELS = 48
 MATMUL_STRIDED_CHANNELS = 32
 
 
+def auto_impl(stride: int, channels: int) -> str:
+    """The implementation `conv2d`'s "auto" takes on the CPU for a layer of this stride on
+    this many input channels (see MATMUL_MAX_CHANNELS)."""
+    suits = stride * stride * channels <= MATMUL_MAX_CHANNELS or (stride > 1 and channels >= MATMUL_STRIDED_CHANNELS)
+    return "matmul" if suits else "xla"
+
+
+def conv1_padding(n: int, kernel: int, stride: int) -> tuple[int, int]:
+    """`Conv1`'s "same" padding of an n-pixel side: kernel - stride pixels before, and
+    after enough for ceil(n / stride) outputs."""
+    return kernel - stride, -(-n // stride) * stride - n
+
+
 def on_blocks(x, kernel, stride: int):
     """A VALID stride-s convolution of x [N, H, W, C] by kernel [k, k, C, F] as a stride-1
     one on s x s pixel blocks: (x's blocks [N, H', W', s*s*C], the kernel [m, m, s*s*C, F],
@@ -150,9 +163,7 @@ def conv2d(x, kernel, stride: int = 1, padding="VALID", impl: str = "auto", form
     k = kernel.shape[0]
     pads = conv_padding(x.shape[1:3], k, stride, padding)
     if impl == "auto":
-        c = x.shape[-1]
-        suits = stride * stride * c <= MATMUL_MAX_CHANNELS or (stride > 1 and c >= MATMUL_STRIDED_CHANNELS)
-        impl = "matmul" if suits and jax.default_backend() == "cpu" else "xla"
+        impl = auto_impl(stride, x.shape[-1]) if jax.default_backend() == "cpu" else "xla"
     if impl == "xla":
         x = x.astype(kernel.dtype)
         return jax.lax.conv_general_dilated(x, kernel, (stride, stride), pads, dimension_numbers=_DIMS)
@@ -269,8 +280,7 @@ class Conv1(nn.Module):
         # the padding and the rearranging into blocks and patches (a quarter of the bytes).
         x, scaled = image, kernel * (1.0 / 255.0)
         if self.padding == "same":
-            hp, wp = -(-h // s) * s, -(-w // s) * s
-            x = jnp.pad(x, ((0, 0), (k - s, hp - h), (k - s, wp - w), (0, 0)))
+            x = jnp.pad(x, ((0, 0), conv1_padding(h, k, s), conv1_padding(w, k, s), (0, 0)))
         else:  # only the rows and columns the windows reach (a multiple of the stride when the kernel is)
             oh, ow = (h - k) // s + 1, (w - k) // s + 1
             x = x[:, : (oh - 1) * s + k, : (ow - 1) * s + k]

@@ -9,15 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from a2catvn_jax.agent.networks import (
-    MATMUL_MAX_CHANNELS,
-    MATMUL_STRIDED_CHANNELS,
-    Conv1,
-    conv2d,
-    conv_padding,
-    make_networks,
-    num_params,
-)
+from a2catvn_jax.agent.networks import Conv1, auto_impl, conv2d, make_networks, num_params
 from a2catvn_jax.agent.update import frames_per_update, make_update
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import NavEnv
@@ -261,12 +253,9 @@ def bench_stream_layers(resolution: int, frames: int, rounds: int, overrides=(),
                     lambda impl, w, x: jnp.mean(jax.nn.relu(conv2d(x, w, s, padding.upper(), impl)) ** 2), impl)
                 steps[impl] = functools.partial(jax.jit(jax.grad(loss, argnums=(0, 1))), w, x)
         if torch is not None:
-            if padding == "valid":
-                pad = (0, 0)
-            elif i == 0:  # networks.Conv1: kernel - stride pixels at the top/left, the rest at the bottom/right
-                pad = (k - s, -(-n // s) * s - n)
-            else:
-                pad = conv_padding((n,), k, s, "SAME")[0]
+            from a2catvn_jax.bench.torch_reference import same_padding
+
+            pad = same_padding(i, n, k, s) if padding == "same" else (0, 0)
             conv = torch.nn.Conv2d(c, f, k, stride=s)
             xt = torch.from_numpy(np.array(x)).permute(0, 3, 1, 2).contiguous().requires_grad_(i > 0)
 
@@ -277,9 +266,6 @@ def bench_stream_layers(resolution: int, frames: int, rounds: int, overrides=(),
 
             steps["torch"] = torch_step
         seconds = _median_seconds(steps, rounds)
-        blocks = s * s * c
-        suits = blocks <= MATMUL_MAX_CHANNELS or (s > 1 and c >= MATMUL_STRIDED_CHANNELS)
-        out[f"conv{i + 1}"] = {"shape": f"{k}x{k}/{s}, {c} -> {f} channels, {n}x{n} input",
-                               "auto": "matmul" if suits else "xla",
+        out[f"conv{i + 1}"] = {"shape": f"{k}x{k}/{s}, {c} -> {f} channels, {n}x{n} input", "auto": auto_impl(s, c),
                                **{name: 1000 * t for name, t in seconds.items()}}
     return out

@@ -23,8 +23,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from a2catvn_jax.agent.networks import TransposedVNHeads, VNHeads, conv_padding, transposed_heads_offset
+from a2catvn_jax.agent.networks import TransposedVNHeads, VNHeads, conv1_padding, conv_padding, transposed_heads_offset
 from a2catvn_jax.env.scenes.spec import NUM_CLASSES
+
+
+def same_padding(layer: int, n: int, kernel: int, stride: int) -> tuple[int, int]:
+    """(before, after) padding of an n-pixel side for conv layer `layer` (0: conv1) with
+    `conv_padding` "same": conv1's as `networks.Conv1`, the others' as XLA's "SAME"."""
+    return conv1_padding(n, kernel, stride) if layer == 0 else conv_padding((n,), kernel, stride, "SAME")[0]
 
 
 class TorchNetwork(nn.Module):
@@ -56,12 +62,7 @@ class TorchNetwork(nn.Module):
 
     def conv(self, i: int, x):
         if self.same:
-            k, s, n = self.kernels[i], self.strides[i], x.shape[-1]
-            if i == 0:  # networks.Conv1: kernel - stride pixels at the top/left, the rest at the bottom/right
-                pad = (k - s, -(-n // s) * s - n)
-            else:
-                pad = conv_padding((n,), k, s, "SAME")[0]
-            x = F.pad(x, pad * 2)
+            x = F.pad(x, same_padding(i, x.shape[-1], self.kernels[i], self.strides[i]) * 2)
         return F.relu(self.convs[i](x))
 
     def stream(self, rgb_uint8):
