@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
+import a2catvn_jax.env.render as render_lib
 from a2catvn_jax.env import camera, navgrid
 from a2catvn_jax.env.geometry import Geometry, pack, slots, take
 from a2catvn_jax.env.mjx_render import MjxRenderer, fields_of
@@ -132,6 +133,23 @@ def _make_batch(models, closed, heights, spec, scene, pos, yaw, tilt, skip_unsup
         d = mujoco.MjData(m)
         mujoco.mj_forward(m, d)
         datas.append(d)
+    return Batch(
+        models=models,
+        datas=datas,
+        geometry=pack(models, closed, heights, skip_unsupported=skip_unsupported),
+        spec=spec,
+        scene=scene,
+        pos=pos,
+        yaw=yaw,
+        tilt=tilt,
+        **_references(models, datas, scene, pos, yaw, tilt),
+        **extra,
+    )
+
+
+def _references(models, datas, scene, pos, yaw, tilt) -> dict:
+    """The renderer's pixel rays of each camera and what mj_multiRay finds along them:
+    Batch's dirs, ref_geom and ref_dist."""
     rays = jax.vmap(lambda y, t: camera.ray_directions(y, t, H, W, FOVY))
     dirs = np.asarray(rays(jnp.asarray(yaw), jnp.asarray(tilt)), np.float64)
     n = H * W
@@ -142,20 +160,7 @@ def _make_batch(models, closed, heights, spec, scene, pos, yaw, tilt, skip_unsup
             models[k], datas[k], pos[b].astype(np.float64), dirs[b].reshape(-1).copy(),
             None, 1, -1, ref_geom[b], ref_dist[b], None, n, mujoco.mjMAXVAL,
         )
-    return Batch(
-        models=models,
-        datas=datas,
-        geometry=pack(models, closed, heights, skip_unsupported=skip_unsupported),
-        spec=spec,
-        scene=scene,
-        pos=pos,
-        yaw=yaw,
-        tilt=tilt,
-        dirs=dirs,
-        ref_geom=ref_geom.reshape(-1, H, W),
-        ref_dist=ref_dist.reshape(-1, H, W),
-        **extra,
-    )
+    return {"dirs": dirs, "ref_geom": ref_geom.reshape(-1, H, W), "ref_dist": ref_dist.reshape(-1, H, W)}
 
 
 def _box(name, lo, hi, rgba):
@@ -240,6 +245,23 @@ def generated() -> Batch:
     )
 
 
+# The generated batch's cameras without tilt (`render_batch` traces their boxes per
+# column and per row when it does not cull), except one camera in the second chunk of
+# 16 frames, so that chunk takes the general trace; 51 frames leave a remainder chunk.
+TILTED_CHUNK = 1
+
+
+@pytest.fixture(scope="module")
+def level(generated) -> Batch:
+    b = generated
+    chunk = b.spec.chunk(len(b.scene))
+    assert chunk == 16 and len(b.scene) % chunk, "the level batch needs whole chunks and a remainder"
+    tilt = np.zeros_like(b.tilt)
+    tilt[TILTED_CHUNK * chunk + 5] = 0.3
+    refs = _references(b.models, b.datas, b.scene, b.pos, b.yaw, tilt)
+    return dataclasses.replace(b, spec=dataclasses.replace(b.spec, candidates=0), tilt=tilt, **refs)
+
+
 @pytest.fixture(scope="module")
 def primitives() -> Batch:
     """The hand-written scene of rotated primitives (not closed), cameras looking
@@ -297,10 +319,11 @@ def _numpy(frame: Frame) -> Frame:
 
 
 @pytest.fixture(scope="module")
-def frames(generated, primitives):
+def frames(generated, primitives, level):
     """frames(batch name, path) -> numpy Frame, rendered once per module.
-    path "exact": render_batch; "brute": render(..., culled=False); "mjx": the mjx backend."""
-    batches = {"generated": generated, "primitives": primitives}
+    path "exact": render_batch; "brute": render(..., culled=False); "mjx": the mjx backend.
+    The level batch's spec does not cull, so its "exact" frames are render_batch's unculled ones."""
+    batches = {"generated": generated, "primitives": primitives, "level": level}
     memo = {}
 
     def get(name: str, path: str) -> Frame:
@@ -366,14 +389,14 @@ def _compare_with_mujoco(b: Batch, f: Frame):
     return lines, (max_err, hit.shape[0], hit.size, int(hit.sum()), ties)
 
 
-@pytest.mark.parametrize("path", ["exact", "brute", "mjx"])
-@pytest.mark.parametrize("name", ["generated", "primitives"])
+@pytest.mark.parametrize("name, path", [(n, p) for n in ("generated", "primitives") for p in ("exact", "brute", "mjx")]
+                         + [("level", "exact")])
 def test_depth_and_geom_match_mj_ray(name, path, frames, request):
     b = request.getfixturevalue(name)
     f = frames(name, path)
     assert f.depth.shape == f.geom.shape == (len(b.scene), H, W)
     # The reference is not degenerate: most rays hit, and in the open scene some miss.
-    assert np.mean(b.ref_geom >= 0) > (0.99 if name == "generated" else 0.3)
+    assert np.mean(b.ref_geom >= 0) > (0.3 if name == "primitives" else 0.99)
     if name == "primitives":
         assert np.any(b.ref_geom < 0)
         hit_types = {int(b.models[0].geom_type[g]) for g in np.unique(b.ref_geom[b.ref_geom >= 0])}
@@ -421,6 +444,27 @@ def test_culling_changes_nothing(generated, frames):
         # (its default) the colours here are bitwise equal.
         differ = (f.rgb != reference.rgb).any(-1)
         assert differ.mean() < 1e-3, f"{label}: {differ.sum()} of {differ.size} pixels differ in colour"
+
+
+def test_level_cameras_take_the_level_trace(level, monkeypatch):
+    """`render_batch` without culling traces a chunk by `_trace_level` exactly when all
+    its cameras are level: with that function replaced by one that marks every pixel,
+    the level chunks (the remainder chunk included) are marked and the chunk with a
+    tilted camera is not."""
+
+    def marked(geom, cam_pos, yaw, dirs, spec):
+        shape = dirs.shape[:2]
+        return jnp.full(shape, 1.0, jnp.float32), jnp.full(shape, -7, jnp.int32)
+
+    monkeypatch.setattr(render_lib, "_trace_level", marked)
+    b = level
+    f = _numpy(jax.jit(functools.partial(render_batch, spec=b.spec))(*b.args()))
+    chunk = b.spec.chunk(len(b.scene))
+    took = np.all(f.geom == -7, axis=(1, 2))
+    tilted = np.arange(len(b.scene)) // chunk == TILTED_CHUNK
+    assert np.all(took == ~tilted), np.nonzero(took != ~tilted)
+    assert np.all(np.isin(f.geom[tilted], [-7], invert=True))
+
 
 def test_ray_check_catches_what_culling_misses(generated):
     """In the slit scene culling alone gets the cabinet behind the slit wrong; the

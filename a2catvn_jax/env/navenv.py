@@ -500,13 +500,26 @@ def action_names(cfg: EnvConfig) -> tuple[str, ...]:
     return tuple(name for name, _ in ACTION_SETS[cfg.action_set])
 
 
-def _uniform_index(key, mask):
+def _uniform_index(key, mask, block: int = 128):
     """An index drawn uniformly among the True entries of `mask` [N]: the k-th of them in
     order, k uniform. Padding `mask` with False entries anywhere after or between the
-    True ones does not change which of them is drawn."""
-    count = mask.sum()
-    k = jnp.minimum(jnp.floor(jax.random.uniform(key) * count), count - 1)
-    return jnp.argmax(jnp.cumsum(mask) > k)
+    True ones does not change which of them is drawn.
+
+    The k-th True entry is found in two steps, the block of `block` entries that holds
+    it and then its place in that block: the same index as the first position where
+    the running count of the whole mask exceeds k, without a running count (and an
+    argmax) over all N entries, which on XLA's CPU backend cost as much as a tenth of
+    a house task's environment step."""
+    n = mask.shape[0]
+    blocks = mask if n <= block else jnp.pad(mask, (0, -n % block))
+    blocks = blocks.reshape(-1, min(n, block)).astype(jnp.int32)
+    counts = blocks.sum(1)
+    count = counts.sum()
+    k = jnp.minimum(jnp.floor(jax.random.uniform(key) * count), count - 1).astype(jnp.int32)
+    ends = jnp.cumsum(counts)
+    b = jnp.argmax(ends > k)
+    within = jnp.argmax(jnp.cumsum(blocks[b]) > k - (ends[b] - counts[b]))
+    return b * blocks.shape[1] + within
 
 
 def _wrap(angle):

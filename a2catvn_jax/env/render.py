@@ -5,7 +5,7 @@ ellipsoids) and capsules: the same geometry MuJoCo's `mj_ray` sees. Depth is the
 distance along the unit pixel ray to the first surface, `geom` the MuJoCo id of the
 geom hit. Images are computed column-major ([W, H]) and returned row-major.
 
-Speed comes from three things:
+Speed comes from four things:
 - Fused loops. Each geom family is intersected in a real XLA while loop over its
   members, written per vector component, so one member's whole test is a single
   elementwise pass over the image that keeps the running nearest hit.
@@ -21,11 +21,17 @@ Speed comes from three things:
   geoms, so the output never depends on culling.
 - Chunks. `render_batch` renders a few frames at a time (a loop over chunks) rather
   than the whole batch at once, so that each pass over the images stays in cache.
+- Level cameras. Without tilt, a pixel ray's horizontal direction depends on its
+  column alone and its height on its row alone, so a world-aligned box's slab test
+  splits into a part per column and a part per row, and each pixel only intersects
+  the two intervals. The unculled renderer does this for every chunk whose cameras
+  all have no tilt (tasks without tilt actions), others take the general test.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import NamedTuple
 
 import jax
@@ -303,8 +309,9 @@ def _tile_candidates(geom: Geometry, cam_pos, dirs, spec: CameraSpec):
 # Tracing and shading.
 
 
-def _nearest(f: str, params: dict, rays, carry):
-    """Loop over candidates, updating the nearest hit (t, geom id) per ray.
+def _nearest(hit, params: dict, rays, carry):
+    """Loop over candidates, updating the nearest hit (t, geom id) per ray; hit(p, rays)
+    is the distance to one candidate p (`_HIT`).
 
     params: {name: [n, ...]} whose trailing shape broadcasts against the rays'.
 
@@ -323,7 +330,7 @@ def _nearest(f: str, params: dict, rays, carry):
         best, gid = carry
         for u in range(unroll):
             p = {name: a[j * unroll + u] for name, a in params.items()}
-            t = jnp.where(p["ok"], _HIT[f](p, rays), INF)
+            t = jnp.where(p["ok"], hit(p, rays), INF)
             better = t < best
             best, gid = jnp.where(better, t, best), jnp.where(better, p["gid"], gid)
         return best, gid
@@ -331,15 +338,17 @@ def _nearest(f: str, params: dict, rays, carry):
     return jax.lax.fori_loop(0, padded // unroll, body, carry)
 
 
-def _trace(geom: Geometry, cam_pos, dirs, cands=None):
+def _trace(geom: Geometry, cam_pos, dirs, cands=None, carry=None, families=FAMILIES):
     """Nearest hit per ray of dirs [T, R, 3] (rays grouped by tile) among the per-tile
-    candidates `cands` (from `_tile_candidates`), or among all geoms if None.
+    candidates `cands` (from `_tile_candidates`), or among all geoms if None, of the
+    geom families `families`, starting from the nearest hits `carry` (default: none).
 
     Returns (t, geom id), each [T, R]; t is INF and the id -1 where nothing is hit."""
     dx, dy, dz = dirs[..., 0], dirs[..., 1], dirs[..., 2]
     rays = (dx, dy, dz, rects.safe_inv(dx), rects.safe_inv(dy), rects.safe_inv(dz))
-    carry = (jnp.full(dx.shape, INF, jnp.float32), jnp.full(dx.shape, -1, jnp.int32))
-    for f in FAMILIES:
+    if carry is None:
+        carry = (jnp.full(dx.shape, INF, jnp.float32), jnp.full(dx.shape, -1, jnp.int32))
+    for f in families:
         fam = geom.families[f]
         if fam.count == 0:
             continue
@@ -352,8 +361,52 @@ def _trace(geom: Geometry, cam_pos, dirs, cands=None):
             params.update(ok=ok, gid=fam.gid[idx])
             # Candidate-major with a broadcast axis for the tile's rays: [K, T, 1].
             params = {k: jnp.swapaxes(v, 0, 1)[..., None] for k, v in params.items()}
-        carry = _nearest(f, params, rays, carry)
+        carry = _nearest(_HIT[f], params, rays, carry)
     return carry
+
+
+def _level_boxes(fam, cam_pos, yaw, spec: CameraSpec):
+    """Nearest hits [W, H] (t along the unit rays, geom id) of a level camera's rays
+    (column-major) with the world-aligned boxes `fam`.
+
+    With no tilt the unnormalised ray through pixel (column i, row j) is forward +
+    x_i right + y_j up with `up` the world's z: its horizontal part depends on the
+    column only and its height on the row only. A box's xy slab interval is then
+    computed once per column and its z interval once per row, and each pixel only
+    intersects the two. Hits are found in units of the unnormalised ray (the same
+    order along a ray) and scaled to unit-ray distances at the end."""
+    x, y = (a.astype(np.float32) for a in camera.image_plane(spec.height, spec.width, spec.fovy))
+    cy, sy = jnp.cos(yaw), jnp.sin(yaw)
+    ix, iy = rects.safe_inv(cy + x * sy), rects.safe_inv(sy - x * cy)  # [W]
+    iz = 1.0 / np.where(np.abs(y) < 1e-12, 1e-12, y)  # [H]
+    lo, hi = fam.pos - fam.size - cam_pos, fam.pos + fam.size - cam_pos  # [N, 3]
+    tx1, tx2, ty1, ty2 = lo[:, :1] * ix, hi[:, :1] * ix, lo[:, 1:2] * iy, hi[:, 1:2] * iy
+    near_col = jnp.maximum(jnp.minimum(tx1, tx2), jnp.minimum(ty1, ty2))  # [N, W]
+    far_col = jnp.minimum(jnp.maximum(tx1, tx2), jnp.maximum(ty1, ty2))
+    tz1, tz2 = lo[:, 2:] * iz, hi[:, 2:] * iz
+    near_row, far_row = jnp.minimum(tz1, tz2), jnp.maximum(tz1, tz2)  # [N, H]
+    params = {"nc": near_col[:, :, None], "fc": far_col[:, :, None], "nr": near_row[:, None, :],
+              "fr": far_row[:, None, :], "ok": fam.valid, "gid": fam.gid}
+    shape = (spec.width, spec.height)
+    t, gid = _nearest(_hit_level_box, params, None, (jnp.full(shape, INF, jnp.float32), jnp.full(shape, -1, jnp.int32)))
+    norm = np.sqrt(1.0 + x[:, None] ** 2 + y[None, :] ** 2).astype(np.float32)  # |unnormalised ray|
+    return jnp.where(t < INF, t * norm, INF), gid
+
+
+def _hit_level_box(p, _):
+    """`_hit_abox` from a box's interval along the pixel's column and along its row."""
+    tn, tf = jnp.maximum(p["nc"], p["nr"]), jnp.minimum(p["fc"], p["fr"])
+    return jnp.where((tn <= tf) & (tf >= 0), jnp.where(tn >= 0, tn, tf), INF)
+
+
+def _trace_level(geom: Geometry, cam_pos, yaw, dirs, spec: CameraSpec):
+    """`_trace` against every geom for a camera without tilt (rays dirs [1, W * H, 3],
+    column-major), its world-aligned boxes by `_level_boxes`."""
+    boxes, rest = geom.families["abox"], tuple(f for f in FAMILIES if f != "abox")
+    if not boxes.count:
+        return _trace(geom, cam_pos, dirs, families=rest)
+    carry = tuple(a.reshape(1, -1) for a in _level_boxes(boxes, cam_pos, yaw, spec))
+    return _trace(geom, cam_pos, dirs, carry=carry, families=rest)
 
 
 def _pattern_factor(pattern, p):
@@ -443,20 +496,32 @@ def _retrace_tiles(geom: Geometry, cam_pos, tiled, t, gid, bad):
     return t, gid
 
 
-def _render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool, exact: bool = False) -> Frame:
+def _rays(yaw, tilt, spec: CameraSpec, culled: bool):
+    """A camera's unit ray directions [W, H, 3] and the same grouped by tile [T, R, 3]
+    (one tile of every column when not `culled`)."""
     dirs = camera.column_ray_directions(yaw, tilt, spec.height, spec.width, spec.fovy)  # [W, H, 3]
     tile = spec.tile if culled else spec.width
-    tiled = dirs.reshape(spec.width // tile, tile * spec.height, 3)
+    return dirs, dirs.reshape(spec.width // tile, tile * spec.height, 3)
+
+
+def _hits(geom: Geometry, cam_pos, yaw, dirs, tiled, spec: CameraSpec, culled: bool, exact: bool = False,
+          level: bool = False):
+    """One camera's nearest hits (t, geom id) [W, H] and whether culling fell back.
+    `level`: the camera has no tilt (the caller checked), so the unculled trace is
+    `_trace_level`'s."""
     if culled:
         t, gid, bad = _culled_trace(geom, cam_pos, tiled, dirs, spec)
         if exact:
             t, gid = _retrace_tiles(geom, cam_pos, tiled, t, gid, bad)
         fallback = jnp.any(bad)
     else:
-        t, gid = _trace(geom, cam_pos, tiled)
+        t, gid = _trace_level(geom, cam_pos, yaw, tiled, spec) if level else _trace(geom, cam_pos, tiled)
         fallback = jnp.bool_(False)
-    t = t.reshape(spec.width, spec.height)
-    gid = gid.reshape(spec.width, spec.height)
+    return t.reshape(spec.width, spec.height), gid.reshape(spec.width, spec.height), fallback
+
+
+def _frame(geom: Geometry, cam_pos, dirs, t, gid, fallback) -> Frame:
+    """The shaded frame, row-major, of one camera's hits."""
     rgb, depth, cls = _shade(geom, cam_pos, dirs, t, gid)
     swap = lambda a: jnp.swapaxes(a, 0, 1)  # noqa: E731  [W, H] -> [H, W]
     return Frame(swap(rgb), swap(depth), swap(gid), swap(cls), fallback)
@@ -468,7 +533,9 @@ def render(geom: Geometry, cam_pos, yaw, tilt, spec: CameraSpec, culled: bool = 
     With `culled`, `fallback` says whether some tiles failed culling's check, in which
     case this frame is *not* exact: use `render_batch` (which re-renders those tiles),
     or `culled=False`."""
-    return _render(geom, cam_pos, yaw, tilt, spec, culled and spec.candidates > 0)
+    culled = culled and spec.candidates > 0
+    dirs, tiled = _rays(yaw, tilt, spec, culled)
+    return _frame(geom, cam_pos, dirs, *_hits(geom, cam_pos, yaw, dirs, tiled, spec, culled))
 
 
 def render_batch(geometry: Geometry, scene, cam_pos, yaw, tilt, spec: CameraSpec, moving=None) -> Frame:
@@ -478,17 +545,42 @@ def render_batch(geometry: Geometry, scene, cam_pos, yaw, tilt, spec: CameraSpec
     of geoms whose pose differs per camera (`geometry.place`).
 
     Frames are rendered `spec.chunk(B)` at a time. Tiles of culled frames that fail
-    their check are re-traced against every geom (`fallback` flags those frames)."""
+    their check are re-traced against every geom (`fallback` flags those frames).
+    Unculled chunks whose cameras all have no tilt take `_trace_level`."""
     culled = spec.candidates > 0
     where, gids = (moving[0], moving[1]) if moving is not None else ((), ())
     poses = (moving[2], moving[3]) if moving is not None else ()
 
-    def one(args):
-        s, p, y, t, *placed = args
+    def geometry_of(s, *placed):
         g = jax.tree_util.tree_map(lambda a: a[s], geometry)
-        if placed:
-            g = place(g, where, gids, *placed)
-        return _render(g, p, y, t, spec, culled, exact=True)
+        return place(g, where, gids, *placed) if placed else g
 
-    b = cam_pos.shape[0]
-    return jax.lax.map(one, (scene, cam_pos, yaw, tilt, *poses), batch_size=spec.chunk(b))
+    def chunk(args):  # a chunk of cameras: their hits (level or not), then their frames
+        s, p, y, t, *placed = args
+        g = jax.vmap(geometry_of)(s, *placed)
+        dirs, tiled = jax.vmap(_rays, in_axes=(0, 0, None, None))(y, t, spec, culled)
+
+        def hits(level: bool):
+            one = functools.partial(_hits, spec=spec, culled=culled, exact=True, level=level)
+            return jax.vmap(one)(g, p, y, dirs, tiled)
+
+        h = hits(False) if culled else jax.lax.cond(jnp.all(t == 0), lambda: hits(True), lambda: hits(False))
+        return jax.vmap(_frame)(g, p, dirs, *h)
+
+    return _map_chunks(chunk, (scene, cam_pos, yaw, tilt, *poses), spec.chunk(cam_pos.shape[0]))
+
+
+def _map_chunks(f, xs, size: int):
+    """f over consecutive chunks of `size` along the leading axis of the pytree xs (a
+    loop over whole chunks, then one call on the rest), concatenated: like
+    `jax.lax.map(..., batch_size=size)`, with f taking whole chunks."""
+    b = jax.tree_util.tree_leaves(xs)[0].shape[0]
+    n, rest = divmod(b, size)
+    outs = []
+    if n:
+        whole = jax.tree_util.tree_map(lambda a: a[: n * size].reshape(n, size, *a.shape[1:]), xs)
+        out = jax.lax.map(f, whole)
+        outs.append(jax.tree_util.tree_map(lambda a: a.reshape(n * size, *a.shape[2:]), out))
+    if rest:
+        outs.append(f(jax.tree_util.tree_map(lambda a: a[n * size :], xs)))
+    return outs[0] if len(outs) == 1 else jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *outs)
