@@ -121,8 +121,12 @@ class Frame(NamedTuple):
 def _slab(x1, x2, y1, y2, z1, z2):
     tn = jnp.maximum(jnp.maximum(jnp.minimum(x1, x2), jnp.minimum(y1, y2)), jnp.minimum(z1, z2))
     tf = jnp.minimum(jnp.minimum(jnp.maximum(x1, x2), jnp.maximum(y1, y2)), jnp.maximum(z1, z2))
-    t = jnp.where(tn >= 0, tn, tf)
-    return jnp.where((tn <= tf) & (tf >= 0), t, INF)
+    return _first_hit(tn, tf)
+
+
+def _first_hit(tn, tf):
+    """First non-negative distance of a ray inside the interval [tn, tf], INF if none."""
+    return jnp.where((tn <= tf) & (tf >= 0), jnp.where(tn >= 0, tn, tf), INF)
 
 
 def _unit_sphere(lx, ly, lz, vx, vy, vz):
@@ -395,8 +399,7 @@ def _level_boxes(fam, cam_pos, yaw, spec: CameraSpec):
 
 def _hit_level_box(p, _):
     """`_hit_abox` from a box's interval along the pixel's column and along its row."""
-    tn, tf = jnp.maximum(p["nc"], p["nr"]), jnp.minimum(p["fc"], p["fr"])
-    return jnp.where((tn <= tf) & (tf >= 0), jnp.where(tn >= 0, tn, tf), INF)
+    return _first_hit(jnp.maximum(p["nc"], p["nr"]), jnp.minimum(p["fc"], p["fr"]))
 
 
 def _trace_level(geom: Geometry, cam_pos, yaw, dirs, spec: CameraSpec):
