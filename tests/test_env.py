@@ -27,7 +27,7 @@ from a2catvn_jax.env.scenes.spec import CLASS_ID, STRUCTURAL_CLASSES, half_exten
 from a2catvn_jax.env.world import BODY_MARGIN, SEGMENTATION_COLORS, World  # noqa: E402
 
 B = 32  # agents per batch
-T = 300  # steps per random rollout
+T = 200  # steps per random rollout
 TOL = 1e-4  # metres of slack in the collision checks
 IMG = 16
 

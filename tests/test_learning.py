@@ -2,11 +2,12 @@
 random policy's.
 
 Task: one furnished room, one target image, the grid action set, 16x16 images,
-40-step episodes. A uniformly random policy reaches the target in roughly 30% of the
-episodes. The agent trains for 100k frames (about a minute on two CPU cores) with the
-full A2CAT-VN loss; its success rate over the episodes of the last 200 updates (several
-hundred episodes) must beat the random policy's, measured over as many episodes in the
-same environment, by at least 0.15.
+40-step episodes. A uniformly random policy reaches the target in about 16% of the
+episodes. The agent trains for 64k frames (400 updates, under a minute on two CPU cores)
+with the full A2CAT-VN loss; its success rate over the episodes of the last 200 updates
+(about a thousand episodes) must beat the random policy's, measured over several hundred
+episodes in the same environment, by at least 0.15. (Measured 2026-12-02: 0.43 against
+0.16; 0.49 after 600 updates.)
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ TASK = [
     "train.log_every=100",
     "train.checkpoint_every=100000",
 ]
-UPDATES = 600
+UPDATES = 400
 MARGIN = 0.15
 
 

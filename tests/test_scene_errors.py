@@ -2,8 +2,9 @@
 command line prints that line (`error: ...`) and exits non-zero without a traceback.
 
 The library tests build the `World` (read the file, the occupancy grid, the render
-backend), which stops before anything compiles. The command-line tests run each module in a
-subprocess with a tiny configuration; the bad file stops it before anything compiles.
+backend), which stops before anything compiles. The command-line tests call each module's `main` with a
+tiny configuration (one of them also in a process of its own); the bad file stops it
+before anything compiles.
 """
 
 from __future__ import annotations
@@ -192,26 +193,45 @@ def _command(cli: str, path: Path, folder: Path) -> list[str]:
     return ["a2catvn_jax.random_agent", "--steps", "1", "--out", str(folder / "random.gif"), "--set", *scene]
 
 
-@pytest.mark.parametrize(
-    "cli, case",
-    [
-        ("train", "cylinder"),
-        ("train", "missing"),
-        ("pretrain", "mesh"),
-        ("train", "hfield"),
-        ("evaluate", "freejoint"),
-        ("experiments", "small_floor"),
-        ("benchmark", "no_floor"),
-        ("random_agent", "truncated"),
-    ],
-)
-def test_command_line_prints_one_error_line(scene_dir, tmp_path, cli, case):
-    path = scene_dir / f"{case}.xml"
-    proc = subprocess.run([sys.executable, "-m", *_command(cli, path, tmp_path)], cwd=tmp_path, env=dict(os.environ),
-                          capture_output=True, text=True, timeout=300)
-    assert proc.returncode != 0, proc.stdout + proc.stderr
-    assert "Traceback" not in proc.stderr, proc.stderr
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1, proc.stderr
+COMMANDS = [
+    ("train", "cylinder"),
+    ("train", "missing"),
+    ("pretrain", "mesh"),
+    ("train", "hfield"),
+    ("evaluate", "freejoint"),
+    ("experiments", "small_floor"),
+    ("benchmark", "no_floor"),
+    ("random_agent", "truncated"),
+]
+
+
+def _check_one_error_line(stderr: str, path: Path, case: str) -> None:
+    assert "Traceback" not in stderr, stderr
+    errors = [line for line in stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1, stderr
     assert errors[0].startswith(f"error: {path}: "), errors[0]
     assert re.search(CASES[case][1], errors[0]), errors[0]
+
+
+def test_command_line_prints_one_error_line(scene_dir, tmp_path):
+    """`python -m a2catvn_jax.train` in a process of its own: one line, a non-zero exit."""
+    path = scene_dir / "cylinder.xml"
+    proc = subprocess.run([sys.executable, "-m", *_command("train", path, tmp_path)], cwd=tmp_path,
+                          env=dict(os.environ), capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0, proc.stdout + proc.stderr
+    _check_one_error_line(proc.stderr, path, "cylinder")
+
+
+@pytest.mark.parametrize("cli, case", COMMANDS)
+def test_every_command_prints_one_error_line(scene_dir, tmp_path, monkeypatch, capsys, cli, case):
+    """Each module's `main`, as `python -m` calls it (in this process: the test above runs
+    one of them in its own), exits non-zero with one error line."""
+    import importlib
+
+    path = scene_dir / f"{case}.xml"
+    monkeypatch.chdir(tmp_path)
+    module, *argv = _command(cli, path, tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        importlib.import_module(module).main(argv)
+    assert exit_info.value.code not in (0, None)
+    _check_one_error_line(capsys.readouterr().err, path, case)

@@ -75,7 +75,8 @@ def _gib(n_bytes) -> float:
 
 
 def _timed_updates(cfg, env, updates: int):
-    """(compile seconds, frames/s, memory) of the training update. Memory in GiB:
+    """(compile seconds, frames/s, memory, the environments' state after the last update)
+    of the training update. Memory in GiB:
     `state` (the training state: parameters, optimiser, environments, replay), `update`
     (XLA's buffers for one update beyond its donated argument, from the compiled
     program), and the process's peak resident memory so far."""
@@ -96,7 +97,7 @@ def _timed_updates(cfg, env, updates: int):
               "update_gib": None if stats is None else _gib(stats.temp_size_in_bytes + stats.output_size_in_bytes
                                                             - stats.alias_size_in_bytes),
               "peak_rss_gib": _gib(peak_rss_bytes())}
-    return compile_s, fps, memory
+    return compile_s, fps, memory, state.env_state
 
 
 def peak_rss_bytes() -> int:
@@ -122,10 +123,11 @@ def random_steps(env, steps: int):
     return rollout
 
 
-def _env_rollout_fps(env, steps: int, repeats: int) -> float:
-    """Frames/s of `steps` environment steps with random actions, in one jitted scan."""
+def _env_rollout_fps(env, state, steps: int, repeats: int) -> float:
+    """Frames/s of `steps` environment steps with random actions, in one jitted scan, from
+    the environments' `state` (the training's: no reset to compile)."""
     rollout = random_steps(env, steps)
-    state = rollout(env.reset(jax.random.PRNGKey(0)), jax.random.PRNGKey(1))
+    state = rollout(state, jax.random.PRNGKey(1))
     jax.block_until_ready(state)
     t0 = time.perf_counter()
     for k in range(repeats):
@@ -137,8 +139,8 @@ def _env_rollout_fps(env, steps: int, repeats: int) -> float:
 def bench_train(name: str, overrides, updates: int) -> dict:
     cfg = load_config(CONFIGS / f"{name}.yaml", overrides)
     env = NavEnv(cfg.env)
-    compile_s, fps, memory = _timed_updates(cfg, env, updates)
-    env_fps = _env_rollout_fps(env, cfg.train.rollout_length, max(2, updates))
+    compile_s, fps, memory, env_state = _timed_updates(cfg, env, updates)
+    env_fps = _env_rollout_fps(env, env_state, cfg.train.rollout_length, max(2, updates))
     return {"config": name, "batch": env.num_envs, "resolution": cfg.env.render.image_size, "train_fps": fps,
             "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps, **memory}
 
