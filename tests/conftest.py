@@ -47,3 +47,17 @@ if "A2CATVN_TEST_XLA_FLAGS" not in os.environ:
 for _flag in os.environ["A2CATVN_TEST_XLA_FLAGS"].split():
     if _flag not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}".strip()
+
+
+# pytest-xdist (`--dist loadfile`) hands whole files to its workers in collection order.
+# The longest files go first (measured with `--durations`), so that the workers' last
+# files are short ones and the two finish close together; within a file the order stays.
+_LONGEST_FIRST = ("test_learner_math.py", "test_env.py", "test_learning.py", "test_notebooks.py", "test_train.py",
+                  "test_evaluate.py", "test_networks.py", "test_backends.py", "test_experiments.py", "test_profile.py",
+                  "test_success.py", "test_env_contract.py", "test_replay_warmup.py", "test_pretrain.py",
+                  "test_render.py", "test_sharding.py", "test_checkpoint_format.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: i for i, name in enumerate(_LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(Path(str(item.fspath)).name, len(rank)))

@@ -809,7 +809,7 @@ def test_scene_with_moving_bodies(tmp_path, backend):
     w = env.world.arrays
     scene = jnp.zeros(8, jnp.int32)
     start = jnp.tile(jnp.asarray([0.5, -1.2, np.pi / 2, 0.0], jnp.float32), (8, 1))
-    data = env.world.place_agent(env.world.scene_data(w, scene, jnp.zeros((8, 4))), start)
+    data = jax.jit(lambda w, s, q, p: env.world.place_agent(env.world.scene_data(w, s, q), p))(w, scene, jnp.zeros((8, 4)), start)
     state = s0.replace(info=s0.info.replace(pose=start, step=jnp.zeros(8, jnp.int32), scene=scene), data=data)
     after = jax.jit(env.step)(state, jnp.zeros(8, jnp.int32))  # forward 0.5 m
     y = np.asarray(after.info.pose[:, 1])

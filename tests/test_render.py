@@ -687,7 +687,7 @@ def test_moving_bodies_render_where_their_data_puts_them():
     scene_idx = jnp.zeros(num, jnp.int32)
     data = jax.jit(jax.vmap(lambda q, p: world.place_agent(world.data(fields, 0, q), p)))(qpos, pose)
     # The camera in the data is where MuJoCo's own kinematics (mjx) puts the mocap body's.
-    kin = jax.vmap(lambda d: mjx.kinematics(world.model, d))(data)
+    kin = jax.jit(jax.vmap(lambda d: mjx.kinematics(world.model, d)))(data)
     np.testing.assert_allclose(np.asarray(kin.cam_xpos[:, world.camera]), np.asarray(data.cam_xpos[:, world.camera]), atol=1e-5)
     np.testing.assert_allclose(np.asarray(kin.cam_xmat[:, world.camera]), np.asarray(data.cam_xmat[:, world.camera]), atol=1e-5)
     np.testing.assert_allclose(np.asarray(kin.xquat[:, world.body]), np.asarray(data.xquat[:, world.body]), atol=1e-5)

@@ -58,6 +58,7 @@ Biases start at zero in both.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any
 
@@ -618,6 +619,12 @@ class TransposedVNHeads(nn.Module):
 
 
 Params = Any  # the network's parameter pytree
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _init(module: "A2CATNet", key) -> Params:
+    img = jnp.zeros((1, module.image_size, module.image_size, 3), jnp.uint8)
+    return module.init(key, img, img, jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
 Carry = Any  # the memory core's state pytree, leaves [N, ...]
 
 
@@ -637,10 +644,9 @@ class Networks:
     blind: bool = False
 
     def init(self, key) -> Params:
-        """Freshly initialised parameters."""
-        size = self.module.image_size
-        img = jnp.zeros((1, size, size, 3), jnp.uint8)
-        return self.module.init(key, img, img, jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
+        """Freshly initialised parameters (one compiled program per network: called
+        outside `jit`, Flax's init would run op by op, an XLA compile per operation)."""
+        return _init(self.module, key)
 
     def initial_carry(self, batch: int) -> Carry:
         """The memory core's state at an episode start, for `batch` agents."""

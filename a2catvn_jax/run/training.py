@@ -10,6 +10,7 @@ loss stops the run with a `TrainingError` and leaves the last good checkpoint.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import signal
@@ -47,6 +48,18 @@ class _StopFlag:
         print("\nstopping after this update (Ctrl-C again to abort without a checkpoint)", file=sys.stderr)
 
 
+@functools.lru_cache(maxsize=1)
+def _build(cfg):
+    """(environment, networks, its jitted init and update, grad-norm diagnostic or None) of
+    `cfg`, whose seed (only the run's first key) is zeroed. The last configuration's are
+    kept: another run of it in this process (a notebook cell run again, the next seed of
+    an experiment) traces and compiles nothing again."""
+    env = NavEnv(cfg.env)
+    networks = make_networks(cfg, env.num_actions)
+    grad_norms = make_grad_norms(env, networks, cfg) if cfg.train.grad_norm_every else None
+    return env, networks, make_update(env, networks, cfg), grad_norms
+
+
 def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: bool = True, log=None, init_from=None):
     """Train `cfg` in `workdir`; returns (environment, final train state, last log row).
 
@@ -63,10 +76,7 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
             f"or choose another --workdir"
         )
     t_build = time.perf_counter()
-    env = NavEnv(cfg.env)
-    networks = make_networks(cfg, env.num_actions)
-    init, update_fn = make_update(env, networks, cfg)
-    grad_norms = make_grad_norms(env, networks, cfg) if cfg.train.grad_norm_every else None
+    env, networks, (init, update_fn), grad_norms = _build(dataclasses.replace(cfg, seed=0))
     per_update = frames_per_update(cfg)
     log(f"built {env.num_scenes} scene(s), {env.num_actions} actions, "
         f"{env.num_envs} environments in {time.perf_counter() - t_build:.1f} s, rendered by {env.world.backend}")
