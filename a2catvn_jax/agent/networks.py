@@ -619,13 +619,13 @@ class TransposedVNHeads(nn.Module):
 
 
 Params = Any  # the network's parameter pytree
+Carry = Any  # the memory core's state pytree, leaves [N, ...]
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _init(module: "A2CATNet", key) -> Params:
+def _init(module: A2CATNet, key) -> Params:
     img = jnp.zeros((1, module.image_size, module.image_size, 3), jnp.uint8)
     return module.init(key, img, img, jnp.zeros((1,), jnp.int32), jnp.zeros((1,)))
-Carry = Any  # the memory core's state pytree, leaves [N, ...]
 
 
 @dataclasses.dataclass(frozen=True)
