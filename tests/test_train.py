@@ -193,6 +193,22 @@ def test_ctrl_c_saves_a_checkpoint(tmp_path):
     assert os.path.exists(tmp_path / "config.yaml")
 
 
+def test_runs_of_one_configuration_share_its_build_and_keep_their_seeds(tmp_path):
+    """`train` keeps the last configuration's environment and compiled functions: runs of
+    it that differ only in their seed build once, still start from their own seed, and a
+    run is the same before and after another has used the kept functions."""
+    from a2catvn_jax.run import training
+
+    quiet = dict(max_updates=2, progress=False, log=lambda *_: None)
+    training._build.cache_clear()
+    _, first, _ = train(_cfg("seed=1"), tmp_path / "first", **quiet)
+    _, other, _ = train(_cfg(), tmp_path / "other", **quiet)
+    _, again, _ = train(_cfg("seed=1"), tmp_path / "again", **quiet)
+    assert training._build.cache_info().misses == 1 and training._build.cache_info().hits == 2
+    assert all(np.array_equal(a, b) for a, b in zip(_leaves(first), _leaves(again)))
+    assert not all(np.array_equal(a, b) for a, b in zip(_leaves(first.params), _leaves(other.params)))
+
+
 def test_sigterm_stops_training_after_the_update_with_a_checkpoint(tmp_path):
     """`train` itself, in this process (Ctrl-C's SIGINT goes to a process of its own above):
     SIGTERM arrives while update 3 is logged; the run stops after that update, checkpoints
