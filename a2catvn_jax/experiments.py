@@ -8,7 +8,7 @@
 Experiments (`EXPERIMENTS`):
   sight           A2CAT-VN vs the same agent blind on the quickstart task (configs/quickstart.yaml)
   aux             A2CAT-VN (pre-trained and not) vs A2C+UNREAL vs plain A2C, and a blind A2CAT-VN
-  ablations       A2CAT-VN without one auxiliary loss at a time
+  ablations       A2CAT-VN without one auxiliary loss at a time, and without all three visual-navigation ones
   ablations_quickstart  the same on the quickstart task (configs/quickstart.yaml)
   memory          LSTM vs frame stack (mazes, UNREAL auxiliary tasks)
   pretraining     with vs without supervised pre-training
@@ -16,6 +16,12 @@ Experiments (`EXPERIMENTS`):
   generalisation  room-type goals over 64 houses (16 at paper scale), A2CAT-VN and blind; held-out houses and new targets
   clipping        A2CAT-VN with the gradient-norm clip of Table I (0.5) vs 40, and A2C
   grid            the grid action set on small rooms (A2CAT-VN vs A2C)
+  aux_every       the depth and segmentation losses on every frame vs every 4th (train.aux_every)
+
+Every experiment also has the blind control (`BLIND_CONTROL`): the configured agent
+trained on images of zeros (`agent.blind=true`), so every table shows what needs no
+sight beside the random policy and the oracle. Experiments on one task share its blind
+runs.
 
 Each experiment names a configuration of `configs/`: `NAME_cpu.yaml` at `--scale cpu`
 (minutes per run on a laptop CPU), `NAME.yaml` at `--scale paper` (the paper's sizes,

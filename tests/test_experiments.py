@@ -36,6 +36,19 @@ def test_every_experiment_has_both_configs_and_plans():
             assert all(r.stored.relative_to("/tmp/store") == r.workdir.relative_to("/tmp/unused") for r in runs)
 
 
+def test_every_experiment_has_the_blind_control_of_its_task():
+    # The configured agent on images of zeros, in every experiment: the same run (so the
+    # same work directory) wherever two experiments share a task.
+    blind_dirs = {}
+    for exp in ex.EXPERIMENTS.values():
+        for scale in ex.SCALES:
+            controls = [r for r in ex.plan(exp, scale, [0], "/r") if r.cfg.agent.blind]
+            assert [r.variant for r in controls] == [ex.BLIND_CONTROL], exp.name
+            path = exp.config_path(scale)
+            assert controls[0].cfg == ex.load_config(path, ["seed=0", "agent.blind=true"])
+            assert blind_dirs.setdefault((scale, path), controls[0].workdir) == controls[0].workdir
+
+
 def test_learning_by_sight_experiments():
     aux, ablations, gen = (ex.EXPERIMENTS[n] for n in ("aux", "ablations", "generalisation"))
     assert [v.label for v in aux.variants] == ["A2CAT-VN (pre-trained)", "A2CAT-VN", "A2C+UNREAL", "A2C",
@@ -46,9 +59,11 @@ def test_learning_by_sight_experiments():
     runs = ex.plan(ablations, "cpu", [0], "/r")
     assert runs[0].workdir == ex.plan(aux, "cpu", [0], "/r")[1].workdir  # the full A2CAT-VN is shared
     weights = ex.AUX_LOSSES
-    for run, loss in zip(runs[1:], weights, strict=True):
+    for run, loss in zip(runs[1:-2], weights, strict=True):
         w = run.cfg.train.loss_weights
         assert getattr(w, loss) == 0 and all(getattr(w, other) > 0 for other in weights if other != loss)
+    # Then all three visual-navigation losses at once and the blind control: the aux experiment's runs.
+    assert [r.workdir for r in runs[-2:]] == [r.workdir for r in ex.plan(aux, "cpu", [0], "/r")[2::2]]
     assert aux.threshold_at("cpu") == ablations.threshold_at("cpu") == gen.threshold_at("cpu") == 0.5
     sight = ex.EXPERIMENTS["sight"]
     assert sight.config_path("cpu") == sight.config_path("paper") == ex.CONFIGS / "quickstart.yaml"
@@ -62,11 +77,12 @@ def test_learning_by_sight_experiments():
     assert runs["A2C"].cfg.train.loss_weights.reward_prediction == 0 and runs["A2C+UNREAL"].cfg.train.loss_weights.depth == 0
     assert runs["A2C+UNREAL"].cfg.train.loss_weights.pixel_control > 0
     abl_qs = ex.plan(ex.EXPERIMENTS["ablations_quickstart"], "cpu", [0], "/r")
-    assert abl_qs[0].workdir == seeing.workdir and len(abl_qs) == 1 + len(weights)  # the full A2CAT-VN is sight's
-    for run, loss in zip(abl_qs[1:], weights, strict=True):
+    assert abl_qs[0].workdir == seeing.workdir and len(abl_qs) == 3 + len(weights)  # the full A2CAT-VN is sight's
+    for run, loss in zip(abl_qs[1:-2], weights, strict=True):
         w = run.cfg.train.loss_weights
         assert getattr(w, loss) == 0 and all(getattr(w, other) > 0 for other in weights if other != loss)
         assert run.cfg.env == seeing.cfg.env
+    assert [r.workdir for r in abl_qs[-2:]] == [runs["A2C+UNREAL"].workdir, blind.workdir]  # stored already
     # the stored seeds and the listing look for its runs under the same single configuration
     assert ex.stored_seeds(sight, "cpu", "/nonexistent") == {"A2CAT-VN": [], "blind A2CAT-VN": []}
     assert "(configs/quickstart.yaml;" in ex.listing("/nonexistent", names=["sight"])

@@ -102,6 +102,12 @@ class Variant:
     pretrain: bool = False  # start from `python -m a2catvn_jax.pretrain` with the same configuration and seed
 
 
+# Every experiment's control: the configured agent trained on images of zeros, so what it
+# reaches needs no sight. Runs are named by their configuration, so the experiments on
+# one task share its blind runs.
+BLIND_CONTROL = Variant("blind A2CAT-VN", BLIND)
+
+
 @dataclasses.dataclass(frozen=True)
 class Experiment:
     name: str
@@ -127,7 +133,7 @@ class Experiment:
 EXPERIMENTS = {e.name: e for e in (
     Experiment(
         "sight", "A2CAT-VN vs the same agent blind on the quickstart task", "quickstart",
-        (Variant("A2CAT-VN"), Variant("blind A2CAT-VN", BLIND)),
+        (Variant("A2CAT-VN"), BLIND_CONTROL),
         cpu_threshold=0.7, evaluations=("train",), cpu_only=True,
         paper="Not in the paper. The blind agent's network sees zero images: what it reaches needs no sight, "
               "so the gap between the two is what the images are used for.",
@@ -135,7 +141,7 @@ EXPERIMENTS = {e.name: e for e in (
     Experiment(
         "aux", "A2CAT-VN vs A2C+UNREAL vs A2C, and a blind A2CAT-VN", "image_goals",
         (Variant("A2CAT-VN (pre-trained)", pretrain=True), Variant("A2CAT-VN"), Variant("A2C+UNREAL", NO_VN),
-         Variant("A2C", NO_VN + NO_UNREAL), Variant("blind A2CAT-VN", BLIND)),
+         Variant("A2C", NO_VN + NO_UNREAL), BLIND_CONTROL),
         paper="House3D, 16 houses: average episode length 200 after about 3M frames with the visual-navigation "
               "auxiliary tasks, about 8M without them (A2C+UNREAL); plain A2C is not shown. The blind agent (its "
               "network sees zero images) is a control: what it reaches needs no sight.",
@@ -143,7 +149,7 @@ EXPERIMENTS = {e.name: e for e in (
     Experiment(
         "aux_quickstart", "A2CAT-VN vs A2C+UNREAL vs A2C on the quickstart task", "quickstart",
         (Variant("A2CAT-VN (pre-trained)", ("pretrain.dataset_size=4000", "pretrain.epochs=10"), pretrain=True),
-         Variant("A2CAT-VN"), Variant("A2C+UNREAL", NO_VN), Variant("A2C", NO_VN + NO_UNREAL)),
+         Variant("A2CAT-VN"), Variant("A2C+UNREAL", NO_VN), Variant("A2C", NO_VN + NO_UNREAL), BLIND_CONTROL),
         cpu_threshold=0.7, evaluations=("train",), cpu_only=True,
         paper="House3D, 16 houses: average episode length 200 after about 3M frames with the visual-navigation "
               "auxiliary tasks, about 8M without them (A2C+UNREAL); plain A2C is not shown. The A2CAT-VN runs are "
@@ -152,59 +158,62 @@ EXPERIMENTS = {e.name: e for e in (
     Experiment(
         "ablations", "A2CAT-VN without one auxiliary loss at a time", "image_goals",
         (Variant("A2CAT-VN"),) + tuple(
-            Variant(f"without {loss.replace('_', ' ')}", (f"train.loss_weights.{loss}=0",)) for loss in AUX_LOSSES),
+            Variant(f"without {loss.replace('_', ' ')}", (f"train.loss_weights.{loss}=0",)) for loss in AUX_LOSSES)
+        + (Variant("A2C+UNREAL", NO_VN), BLIND_CONTROL),
         paper="The paper compares A2CAT-VN with A2C+UNREAL (all three visual-navigation losses removed together) "
               "and reports no leave-one-out ablation.",
     ),
     Experiment(
         "ablations_quickstart", "A2CAT-VN without one auxiliary loss at a time, on the quickstart task", "quickstart",
         (Variant("A2CAT-VN"),) + tuple(
-            Variant(f"without {loss.replace('_', ' ')}", (f"train.loss_weights.{loss}=0",)) for loss in AUX_LOSSES),
+            Variant(f"without {loss.replace('_', ' ')}", (f"train.loss_weights.{loss}=0",)) for loss in AUX_LOSSES)
+        + (Variant("A2C+UNREAL", NO_VN), BLIND_CONTROL),
         cpu_threshold=0.7, evaluations=("train",), cpu_only=True,
         paper="The paper compares A2CAT-VN with A2C+UNREAL (all three visual-navigation losses removed together) "
               "and reports no leave-one-out ablation. The A2CAT-VN runs are the sight experiment's.",
     ),
     Experiment(
         "memory", "LSTM vs frame stack", "maze",
-        (Variant("LSTM"), Variant("frame stack", ("agent.memory=frame_stack",))),
+        (Variant("LSTM"), Variant("frame stack", ("agent.memory=frame_stack",)), BLIND_CONTROL),
         cpu_threshold=0.7,
         paper="DeepMind Lab SeekAvoid, UNREAL auxiliary tasks: the LSTM clearly outperforms four stacked frames.",
     ),
     Experiment(
         "pretraining", "with vs without supervised pre-training", "image_goals",
-        (Variant("no pre-training"), Variant("pre-trained", pretrain=True)),
+        (Variant("no pre-training"), Variant("pre-trained", pretrain=True), BLIND_CONTROL),
         paper="Pre-training is part of the House3D run (2e4 images, 30 epochs of Adam); the paper reports no "
               "ablation of it and names its effect as future work.",
     ),
     Experiment(
         "curriculum", "with vs without the curriculum", "image_goals",
-        (Variant("no curriculum", ("train.curriculum=false",)), Variant("curriculum", ("train.curriculum=true",))),
+        (Variant("no curriculum", ("train.curriculum=false",)), Variant("curriculum", ("train.curriculum=true",)),
+         BLIND_CONTROL),
         paper="The curriculum (complexity 0.3 to 1.0 between 5M and 10M frames) is part of the House3D run; "
               "the paper reports no ablation of it.",
     ),
     Experiment(
         "generalisation", "room-type goals over many houses (64 at CPU scale, a new one each episode; 16 at paper scale): training vs held-out houses", "house_rooms",
-        (Variant("A2CAT-VN"), Variant("blind A2CAT-VN", BLIND)),
+        (Variant("A2CAT-VN"), BLIND_CONTROL),
         paper="The paper leaves generalisation to unseen houses and unseen targets as future work.",
     ),
     Experiment(
         "clipping", "gradient-norm clipping with the auxiliary losses", "image_goals",
         (Variant("A2CAT-VN, clip 0.5"), Variant("A2CAT-VN, clip 40", ("train.max_grad_norm=40",)),
-         Variant("A2C, clip 0.5", NO_VN + NO_UNREAL)),
+         Variant("A2C, clip 0.5", NO_VN + NO_UNREAL), BLIND_CONTROL),
         paper="Table I clips the global gradient norm at 0.5. The auxiliary losses add to that norm, so the clip "
               "also shrinks the actor-critic part of the step; the paper does not discuss this.",
     ),
     Experiment(
         "aux_every", "the depth and segmentation losses on every rollout frame vs every 4th (train.aux_every)",
         "image_goals",
-        (Variant("A2CAT-VN"), Variant("A2CAT-VN, vision losses every 4th frame", ("train.aux_every=4",))),
+        (Variant("A2CAT-VN"), Variant("A2CAT-VN, vision losses every 4th frame", ("train.aux_every=4",)), BLIND_CONTROL),
         paper="The paper computes the depth and segmentation losses on every frame. Every 4th frame divides "
               "their memory and time by about 4 (what lets thousands of environments train in memory); this "
               "measures what it costs learning. The A2CAT-VN runs are the aux experiment's.",
     ),
     Experiment(
         "grid", "grid actions on small rooms: A2CAT-VN vs A2C", "grid",
-        (Variant("A2CAT-VN"), Variant("A2C", NO_VN + NO_UNREAL)),
+        (Variant("A2CAT-VN"), Variant("A2C", NO_VN + NO_UNREAL), BLIND_CONTROL),
         cpu_threshold=0.7,
         paper="AI2-THOR, four scenes, grid actions: A2CAT-VN finds the optimal solution after about 5e5 frames.",
     ),
