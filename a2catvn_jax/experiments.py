@@ -1,6 +1,6 @@
 """Comparisons of the method's variants: train with several seeds, evaluate, store, plot, tabulate.
 
-    python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1 2 3 4 | --stored-seeds]
+    python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1 2 3 4 | --stored-seeds | --all-stored]
         [--episodes 100] [--threshold T] [--root runs/experiments] [--store docs/experiments/runs]
         [--docs docs] [--skip-missing] [--jobs N] [--set KEY=VALUE ...]
     python -m a2catvn_jax.experiments --list [NAME ...] [--scale cpu|paper] [--store DIR]
@@ -40,7 +40,9 @@ date, machine, git commit); checkpoints and TensorBoard files stay in ROOT. Comm
 store: a stored run is never trained again, and the curves and tables are made from
 the store, so on a fresh clone `python -m a2catvn_jax.experiments NAME` re-plots and
 re-tabulates without training, and more `--seeds` train only the missing ones.
-`--stored-seeds` uses the seeds stored for every variant and trains nothing. `--jobs N`
+`--stored-seeds` uses the seeds stored for every variant and trains nothing;
+`--all-stored` reports every stored run, however many seeds each variant has (a look at
+an experiment part-way), and trains nothing. `--jobs N`
 trains N runs at once, each in its own process pinned to its share of the CPU cores
 (its log in `train.log` in the run's directory under ROOT): on a CPU with few cores a
 small run leaves cores idle, so runs side by side finish sooner in all
@@ -84,6 +86,9 @@ def main(argv=None) -> None:
                        help=f"default: {' '.join(map(str, ex.DEFAULT_SEEDS))}")
     seeds.add_argument("--stored-seeds", action="store_true",
                        help="the seeds stored for every variant; trains nothing")
+    seeds.add_argument("--all-stored", action="store_true",
+                       help="every stored run, however many seeds each variant has (a part-way report); "
+                            "trains nothing")
     parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes per run and set")
     parser.add_argument("--threshold", type=float, default=None,
                         help="training success rate for 'frames to threshold' (default: the experiment's, per scale)")
@@ -127,10 +132,15 @@ def main(argv=None) -> None:
             if not run_seeds:
                 raise ExperimentError(f"{exp.name}: no seed is stored for every variant in {store} ("
                                       + "; ".join(f"{label}: {len(s)}" for label, s in stored.items()) + ")")
+        if args.all_stored:
+            stored = ex.stored_seeds(exp, scale, store, cli.overrides_of(args))
+            run_seeds = sorted(set.union(*(set(s) for s in stored.values())))
+            if not run_seeds:
+                raise ExperimentError(f"{exp.name}: no run is stored in {store}")
         ex.run_experiment(exp, scale=scale, seeds=run_seeds, episodes=args.episodes, root=args.root, docs=args.docs,
                        store=store, overrides=cli.overrides_of(args), command=command.strip(),
                        threshold=args.threshold, skip_missing=args.skip_missing, train_only=args.train_only,
-                       jobs=args.jobs, report=not args.no_report)
+                       jobs=args.jobs, report=not args.no_report, stored_only=args.all_stored)
 
 
 if __name__ == "__main__":

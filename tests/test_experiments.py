@@ -304,6 +304,30 @@ def test_an_added_seed_trains_only_that_seed(trained, from_store):
     assert ex.stored_seeds(one, "cpu", root / "docs" / "experiments" / "runs", TINY) == {"a": [0, 1, 2]}
 
 
+def test_all_stored_reports_each_variants_stored_runs_part_way(trained, from_store, monkeypatch, capsys):
+    root = trained[0]
+    run_tiny(root, tiny((ex.Variant("a"),), name="tiny_a"), seeds=(0, 1, 2))  # "a" has seed 2 stored, "b" not
+    monkeypatch.setitem(ex.EXPERIMENTS, "tiny", tiny())
+    where = ["--episodes", "2", "--docs", str(root / "docs"), "--root", str(root / "nowhere"), "--set", *TINY]
+    cli.main(["tiny", "--all-stored", *where])
+    assert not trained_runs(capsys.readouterr().out.splitlines())
+    summary = json.loads((root / "docs" / "experiments" / "runs" / "cpu" / "tiny.json").read_text())
+    assert [summary["variants"][v]["seeds"] for v in ("a", "b", "a again")] == [[0, 1, 2], [0, 1], [0, 1, 2]]
+    assert len(summary["variants"]["a"]["eval"]["train"]["success_rate"]) == 3
+    text = (root / "docs" / "results.md").read_text()
+    assert "Seeds: a 0–2 (3); b 0, 1 (2); a again 0–2 (3)." in text
+    cli.main(["tiny", "--stored-seeds", *where])  # the seeds stored for every variant
+    assert "Seeds: 0, 1 (2 runs per variant)." in (root / "docs" / "results.md").read_text()
+    # A variant with no stored run cannot be reported: one line that names it.
+    monkeypatch.setitem(ex.EXPERIMENTS, "tiny", tiny(TINY_VARIANTS + (ex.Variant("c", ("train.max_grad_norm=1",)),)))
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["tiny", "--all-stored", *where])
+    assert exit_info.value.code == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 1 and errors[0].startswith("error: tiny: no run of 'c' is stored in ")
+
+
 def test_jobs_train_each_run_by_the_runners_own_command(trained, from_store, monkeypatch, capsys):
     """`--jobs N`: each run to train is one process running the runner's own command for
     that (seed, variant) with --no-report, N at a time; the parent reports from the

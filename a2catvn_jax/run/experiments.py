@@ -815,8 +815,12 @@ def _mean_minutes(seconds: Sequence[Optional[float]]) -> str:
 
 def section(exp: Experiment, scale: str, summary: dict, command: str, image: str) -> str:
     evaluations = exp.evaluations
-    seeds = next(iter(summary["variants"].values()))["seeds"]
-    n = len(seeds)
+    seeds = {label: v["seeds"] for label, v in summary["variants"].items()}
+    n = min(len(s) for s in seeds.values())
+    if all(s == next(iter(seeds.values())) for s in seeds.values()):
+        seeds_text = f"{_seeds_text(next(iter(seeds.values())))} ({n} run{'s' if n > 1 else ''} per variant)"
+    else:  # a part-way report (`stored_only`)
+        seeds_text = "; ".join(f"{label} {_seeds_text(s)} ({len(s)})" for label, s in seeds.items())
     threshold = summary["threshold"]
     lines = [
         f"### {exp.title} ({scale} scale)",
@@ -826,7 +830,7 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         + "; ".join(f"{v.label}" + (f" (`{' '.join(v.overrides)}`)" if v.overrides else "")
                     + (" (pre-trained)" if v.pretrain and "pre-trained" not in v.label else "")
                     for v in exp.variants) + ".  ",
-        f"Seeds: {_seeds_text(seeds)} ({n} run{'s' if n > 1 else ''} per variant). Evaluation: {summary['episodes']} "
+        f"Seeds: {seeds_text}. Evaluation: {summary['episodes']} "
         f"episodes per run and house set, sampled policy, complexity 1.  ",
         _provenance(summary) + " Mean training wall time per run: "
         + "; ".join(f"{label} {_mean_minutes(v['training_seconds'])}" for label, v in summary["variants"].items())
@@ -836,8 +840,10 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         "",
         table(summary, evaluations),
         "",
-        ("Each cell: the mean over the seeds and its 95% t-interval [low, high] (Student's t, n − 1 degrees of "
-         "freedom, clipped to the possible range)" if n > 1 else "One seed: each cell is that run's value, no interval")
+        ("One seed: each cell is that run's value, no interval" if max(map(len, seeds.values())) == 1 else
+         "Each cell: the mean over the seeds and its 95% t-interval [low, high] (Student's t, n − 1 degrees of "
+         "freedom, clipped to the possible range" + ("; a variant with one run: its value, no interval)" if n == 1
+                                                     else ")"))
         + "; (n=k): only k runs have that number. "
         f"Frames to threshold: the first log row at which the training success rate, a running mean over "
         f"{SMOOTH_FRACTION:.0%} of the run, reaches {threshold:g}; the mean and interval are over the runs that reach "
@@ -958,7 +964,7 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
                    root=DEFAULT_ROOT, docs="docs", store=None, overrides: Sequence[str] = (), command: str = "",
                    threshold: Optional[float] = None, skip_missing: bool = False, compilation_cache: bool = True,
                    train_only: Optional[Sequence[str]] = None, jobs: int = 1, report: bool = True,
-                   log: Optional[Callable[[str], None]] = None) -> dict:
+                   stored_only: bool = False, log: Optional[Callable[[str], None]] = None) -> dict:
     """Train, evaluate, store and report `exp`; returns its summary (also written as JSON).
 
     Runs stored in `store` (default DOCS/experiments/runs) are not trained again, and
@@ -973,7 +979,9 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
     variant at a time, across sittings and machines, through the store.
 
     Runs train seed by seed (every variant of seed 0, then of seed 1, ...), so an
-    experiment stopped part-way leaves comparable seeds behind.
+    experiment stopped part-way leaves comparable seeds behind. `stored_only` trains
+    nothing and reports the stored runs among `seeds`, however many each variant has
+    (a look at a long experiment part-way; every variant needs one stored run).
 
     `jobs` > 1 trains that many runs at once, each in a process of its own pinned to its
     share of the CPU cores (`workers.run_pool`; on a CPU with few cores the runs finish
@@ -1001,6 +1009,11 @@ def run_experiment(exp: Experiment, *, scale: str = "cpu", seeds: Sequence[int] 
                               + ", ".join(map(repr, labels)))
     t0 = time.perf_counter()
     runs = plan(exp, scale, seeds, root, overrides, store)
+    if stored_only:
+        runs = [r for r in runs if r.is_stored()]
+        missing = [v.label for v in exp.variants if not any(r.variant == v for r in runs)]
+        if missing:
+            raise ExperimentError(f"{exp.name}: no run of {', '.join(map(repr, missing))} is stored in {store}")
     if compilation_cache:
         _compilation_cache(Path(root) / ".jax_cache")
     stored = sum(r.is_stored() for r in runs)
