@@ -19,6 +19,7 @@ from a2catvn_jax.agent.networks import make_networks
 from a2catvn_jax.agent.update import make_update
 from a2catvn_jax.config import load_config
 from a2catvn_jax.env import NavEnv
+from a2catvn_jax.run import inspection
 from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.training import TrainingError, train
@@ -252,3 +253,12 @@ def test_grad_norm_diagnostic_is_logged_and_changes_nothing(tmp_path, straight):
             assert all(np.isfinite(r[f"grad_norm/{t}"]) and r[f"grad_norm/{t}"] > 0 for t in terms)
     header = (tmp_path / "metrics.csv").read_text().splitlines()[0].split(",")
     assert "grad_norm/reward_prediction" in header and len((tmp_path / "metrics.csv").read_text().splitlines()) == 2 * N + 1
+    # The same norms from the checkpoint at update 4, then from other batches of that state.
+    norms = inspection.gradient_norms(tmp_path, step=4, batches=3)
+    logged = next(r for r in rows if r["update"] == 4)
+    assert norms["step"] == 4 and len(norms["batches"]) == 3
+    for key, value in norms["batches"][0].items():
+        np.testing.assert_allclose(value, logged[key], rtol=1e-5, err_msg=key)
+    others = [b["grad_norm/total_shared"] for b in norms["batches"][1:]]
+    assert all(v != norms["batches"][0]["grad_norm/total_shared"] for v in others)
+    np.testing.assert_allclose(norms["mean"]["grad_norm/actor"], np.mean([b["grad_norm/actor"] for b in norms["batches"]]))

@@ -6,6 +6,7 @@ depth and segmentation predictions, and draw them beside the ground truth and th
     rec = inspection.record(agent, steps=200, seed=0)          # environment 0, step by step
     inspection.prediction_figure(agent, rec, t=10)             # matplotlib Figure
     inspection.path_map(agent, rec, episode=0)                 # [size, size, 3] uint8 top-down map
+    inspection.gradient_norms("runs/quickstart", batches=8)    # which loss drives the shared layers there
 
 Used by `notebooks/evaluate.ipynb`.
 """
@@ -23,8 +24,11 @@ from matplotlib.figure import Figure  # no pyplot: works with any backend; noteb
 
 from a2catvn_jax.agent.acting import POLICIES, act_as, initial_agent, observe
 from a2catvn_jax.agent.losses import DEPTH_SCALE, downsize_mean
-from a2catvn_jax.agent.networks import VN_HEADS, Networks
+from a2catvn_jax.agent.networks import VN_HEADS, Networks, make_networks
+from a2catvn_jax.agent.update import make_grad_norms, make_update
+from a2catvn_jax.env import NavEnv
 from a2catvn_jax.env.world import SEGMENTATION_COLORS
+from a2catvn_jax.run.checkpoint import Checkpointer, read_run_config
 from a2catvn_jax.run.restore import locate, make_env
 from a2catvn_jax.run.topdown import TopdownMap
 
@@ -62,6 +66,33 @@ def load_agent(workdir, step: Optional[int] = None, houses: str = "train", overr
     env = make_env(run.cfg.env, houses)
     r = run.restore()
     return Agent(r.workdir, r.run_cfg, r.cfg, env, r.networks, r.params, r.step, r.frames)
+
+
+def gradient_norms(workdir, step: Optional[int] = None, batches: int = 8) -> dict:
+    """Which loss drives the shared features at checkpoint `step` (default: the latest) of
+    the run in `workdir`: the norm of each weighted loss term's gradient on the conv
+    layers every head shares (`update.make_grad_norms`, what `train.grad_norm_every` logs),
+    on `batches` batches collected from the checkpoint's whole training state: the batch
+    its next update would have learned from (the state's own key; the values a
+    `grad_norm_every` log row of that update holds), then batches from keys folded from
+    it. Returns {"step", "batches": [{"grad_norm/TERM": norm, ...}, ...], "mean": {...}}.
+    Raises `CheckpointError` for a missing or unreadable checkpoint."""
+    if batches < 1:
+        raise ValueError(f"batches must be >= 1, got {batches}")
+    cfg = read_run_config(workdir)
+    env = NavEnv(cfg.env)
+    networks = make_networks(cfg, env.num_actions)
+    template = jax.eval_shape(make_update(env, networks, cfg).init, jax.random.PRNGKey(0))
+    ckpt = Checkpointer(workdir, create=False)
+    try:
+        step = ckpt.resolve_step(step)
+        state, _ = ckpt.restore(template, cfg, step)
+    finally:
+        ckpt.close()
+    norms = make_grad_norms(env, networks, cfg)
+    keys = [state.key] + [jax.random.fold_in(state.key, i) for i in range(1, batches)]
+    rows = [{k: float(v) for k, v in jax.device_get(norms(state.replace(key=k))).items()} for k in keys]
+    return {"step": step, "batches": rows, "mean": {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}}
 
 
 def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", env_index: int = 0) -> dict:
