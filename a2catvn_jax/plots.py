@@ -1,9 +1,12 @@
 """Learning curves from the metrics.jsonl of training runs.
 
-    python -m a2catvn_jax.plots RUN_DIR [RUN_DIR ...] --out curve.png [--smooth 5]
+    python -m a2catvn_jax.plots RUN_DIR [RUN_DIR ...] --out curve.png [--smooth 5] [--metrics KEY ...] [--log-y]
 
 One panel per metric (success rate, episode length, SPL by default) against frames,
-one line per run, each smoothed by a running mean over `--smooth` log rows.
+one line per run, each smoothed by a running mean over `--smooth` log rows. Any column
+of the runs' metrics.jsonl is a metric: e.g. `--metrics grad_norm/reward_prediction
+grad_norm/actor --log-y` for the gradient norms a run with `train.grad_norm_every`
+logs.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.plots import METRICS, plot_runs
 
 
@@ -21,11 +25,19 @@ def main(argv=None) -> None:
     parser.add_argument("--metrics", nargs="+", default=list(METRICS))
     parser.add_argument("--smooth", type=int, default=5, help="running mean over this many log rows")
     parser.add_argument("--title", default=None)
+    parser.add_argument("--log-y", action="store_true", help="logarithmic y axes")
     args = parser.parse_args(argv)
+    if args.smooth < 1:
+        parser.error(f"--smooth must be >= 1, got {args.smooth}")
+    columns = set()
     for w in args.workdirs:
         if not (Path(w) / "metrics.jsonl").exists():
             parser.error(f"{w}: no metrics.jsonl")
-    plot_runs(args.workdirs, args.out, args.metrics, args.smooth, title=args.title)
+        columns.update(k for row in read_jsonl(Path(w) / "metrics.jsonl") for k in row)
+    unknown = [m for m in args.metrics if m not in columns]
+    if unknown:
+        parser.error(f"no run logs {', '.join(map(repr, unknown))}; the runs' columns: {', '.join(sorted(columns))}")
+    plot_runs(args.workdirs, args.out, args.metrics, args.smooth, title=args.title, log_y=args.log_y)
     print(f"wrote {args.out}")
 
 

@@ -29,8 +29,8 @@ def smooth(y: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def plot_runs(workdirs, out, metrics=METRICS, window: int = 5, labels=None, title=None):
-    """Write a PNG of `metrics` against frames for each run directory."""
+def plot_runs(workdirs, out, metrics=METRICS, window: int = 5, labels=None, title=None, log_y: bool = False):
+    """Write a PNG of `metrics` against frames for each run directory (`log_y`: logarithmic y axes)."""
     fig = Figure(figsize=(4.2 * len(metrics), 3.2))
     axes = fig.subplots(1, len(metrics), squeeze=False)
     for i, workdir in enumerate(workdirs):
@@ -44,6 +44,8 @@ def plot_runs(workdirs, out, metrics=METRICS, window: int = 5, labels=None, titl
         ax.set_xlabel("frames")
         ax.set_title(LABELS.get(key, key))
         ax.grid(alpha=0.3)
+        if log_y:
+            ax.set_yscale("log")
     if len(workdirs) > 1:
         axes[0][0].legend()
     if title:
