@@ -126,17 +126,14 @@ def main(argv=None) -> None:
     with cli.errors(parser, code=1), cli.errors(parser, code=2, kinds=(ConfigError, ExperimentError, ValueError)), \
             cli.errors(parser, code=130, kinds=(Interrupted,)):
         run_seeds = args.seeds
-        if args.stored_seeds:
+        if args.stored_seeds or args.all_stored:
             stored = ex.stored_seeds(exp, scale, store, cli.overrides_of(args))
-            run_seeds = sorted(set.intersection(*(set(s) for s in stored.values())))
+            combine = set.intersection if args.stored_seeds else set.union
+            run_seeds = sorted(combine(*(set(s) for s in stored.values())))
             if not run_seeds:
                 raise ExperimentError(f"{exp.name}: no seed is stored for every variant in {store} ("
-                                      + "; ".join(f"{label}: {len(s)}" for label, s in stored.items()) + ")")
-        if args.all_stored:
-            stored = ex.stored_seeds(exp, scale, store, cli.overrides_of(args))
-            run_seeds = sorted(set.union(*(set(s) for s in stored.values())))
-            if not run_seeds:
-                raise ExperimentError(f"{exp.name}: no run is stored in {store}")
+                                      + "; ".join(f"{label}: {len(s)}" for label, s in stored.items()) + ")"
+                                      if args.stored_seeds else f"{exp.name}: no run is stored in {store}")
         ex.run_experiment(exp, scale=scale, seeds=run_seeds, episodes=args.episodes, root=args.root, docs=args.docs,
                        store=store, overrides=cli.overrides_of(args), command=command.strip(),
                        threshold=args.threshold, skip_missing=args.skip_missing, train_only=args.train_only,

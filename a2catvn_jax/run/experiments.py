@@ -816,9 +816,10 @@ def _mean_minutes(seconds: Sequence[Optional[float]]) -> str:
 def section(exp: Experiment, scale: str, summary: dict, command: str, image: str) -> str:
     evaluations = exp.evaluations
     seeds = {label: v["seeds"] for label, v in summary["variants"].items()}
+    first_seeds = next(iter(seeds.values()))
     n = min(len(s) for s in seeds.values())
-    if all(s == next(iter(seeds.values())) for s in seeds.values()):
-        seeds_text = f"{_seeds_text(next(iter(seeds.values())))} ({n} run{'s' if n > 1 else ''} per variant)"
+    if all(s == first_seeds for s in seeds.values()):
+        seeds_text = f"{_seeds_text(first_seeds)} ({n} run{'s' if n > 1 else ''} per variant)"
     else:  # a part-way report (`stored_only`)
         seeds_text = "; ".join(f"{label} {_seeds_text(s)} ({len(s)})" for label, s in seeds.items())
     threshold = summary["threshold"]

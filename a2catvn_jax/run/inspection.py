@@ -28,7 +28,7 @@ from a2catvn_jax.agent.networks import VN_HEADS, Networks, make_networks
 from a2catvn_jax.agent.update import make_grad_norms, make_update
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.env.world import SEGMENTATION_COLORS
-from a2catvn_jax.run.checkpoint import Checkpointer, read_run_config
+from a2catvn_jax.run.checkpoint import Checkpointer
 from a2catvn_jax.run.restore import locate, make_env
 from a2catvn_jax.run.topdown import TopdownMap
 
@@ -79,20 +79,20 @@ def gradient_norms(workdir, step: Optional[int] = None, batches: int = 8) -> dic
     Raises `CheckpointError` for a missing or unreadable checkpoint."""
     if batches < 1:
         raise ValueError(f"batches must be >= 1, got {batches}")
-    cfg = read_run_config(workdir)
+    run = locate(workdir, step)
+    cfg = run.run_cfg
     env = NavEnv(cfg.env)
     networks = make_networks(cfg, env.num_actions)
     template = jax.eval_shape(make_update(env, networks, cfg).init, jax.random.PRNGKey(0))
-    ckpt = Checkpointer(workdir, create=False)
+    ckpt = Checkpointer(run.workdir, create=False)
     try:
-        step = ckpt.resolve_step(step)
-        state, _ = ckpt.restore(template, cfg, step)
+        state, _ = ckpt.restore(template, cfg, run.step)
     finally:
         ckpt.close()
     norms = make_grad_norms(env, networks, cfg)
     keys = [state.key] + [jax.random.fold_in(state.key, i) for i in range(1, batches)]
     rows = [{k: float(v) for k, v in jax.device_get(norms(state.replace(key=k))).items()} for k in keys]
-    return {"step": step, "batches": rows, "mean": {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}}
+    return {"step": run.step, "batches": rows, "mean": {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}}
 
 
 def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", env_index: int = 0) -> dict:
