@@ -124,6 +124,14 @@ def test_statistics():
     curve = {"frames": np.array([10.0, 20.0, 30.0]), "success_rate": np.array([0.2, 0.75, 0.6])}
     assert ex.frames_to_threshold(curve, 0.7) == 20.0
     assert ex.frames_to_threshold(curve, 0.8) is None
+    # 20 rows: the last 10% is rows 18-19, the 10% before it rows 16-17; None and NaN rows left out
+    rows = [{"success_rate": 0.1}] * 16 + [{"success_rate": 0.4}, {"success_rate": 0.6},
+                                           {"success_rate": 0.7}, {"success_rate": None}]
+    assert ex.final_success(rows) == pytest.approx(0.7)
+    assert ex.late_change(rows) == pytest.approx(0.7 - 0.5)
+    assert ex.late_change(rows[:12] + rows[-4:][::-1]) == pytest.approx(0.5 - 0.7)  # 16 rows: the last 2 vs the 2 before
+    assert math.isnan(ex.late_change(rows[:1]))
+    assert ex.format_estimate([0.05, -0.01, 0.03], -1.0, 1.0, "{:+.2f}".format) == "+0.02 [-0.05, +0.10]"
 
 
 def test_t_interval_by_hand():
@@ -268,7 +276,8 @@ def test_store_alone_reproduces_the_results(trained, from_store):
     again, lines, text_again = from_store
     assert not any((root / "runs").rglob("checkpoints"))
     assert trained_runs(lines) == [] and not any(line.startswith("evaluating") for line in lines)
-    for key in ("frames", "success_rate", "episode_length", "frames_to_threshold", "final_success", "eval"):
+    for key in ("frames", "success_rate", "episode_length", "frames_to_threshold", "final_success", "late_change",
+                "eval"):
         for label in summary["variants"]:
             assert same(again["variants"][label][key], summary["variants"][label][key]), (label, key)
     assert same(again["baselines"], summary["baselines"])

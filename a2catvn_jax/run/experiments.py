@@ -628,11 +628,24 @@ def frames_to_threshold(curve: dict, threshold: float) -> Optional[float]:
     return float(curve["frames"][hit[0]]) if hit.size else None
 
 
+def _mean_success(rows: list[dict]) -> float:
+    values = [r["success_rate"] for r in rows if r.get("success_rate") is not None and math.isfinite(r["success_rate"])]
+    return float(np.mean(values)) if values else math.nan
+
+
 def final_success(rows: list[dict]) -> float:
     """The mean training success rate over the last FINAL_FRACTION of a training log."""
-    tail = rows[-max(1, round(FINAL_FRACTION * len(rows))):]
-    values = [r["success_rate"] for r in tail if r.get("success_rate") is not None and math.isfinite(r["success_rate"])]
-    return float(np.mean(values)) if values else math.nan
+    return _mean_success(rows[-max(1, round(FINAL_FRACTION * len(rows))):])
+
+
+def late_change(rows: list[dict]) -> float:
+    """The training success rate's change at the end of a log: the mean over its last
+    FINAL_FRACTION of rows minus the mean over the FINAL_FRACTION before those. Above 0:
+    the run was still improving when it ended."""
+    k = max(1, round(FINAL_FRACTION * len(rows)))
+    if len(rows) < 2 * k:
+        return math.nan
+    return _mean_success(rows[-k:]) - _mean_success(rows[-2 * k:-k])
 
 
 def frames_text(value: float) -> str:
@@ -679,6 +692,7 @@ def summarise(exp: Experiment, runs: list[Run], evals: dict, baseline: dict, thr
             first_frames = capped
         entry["welch_p_frames_vs_first"] = None if variant == exp.variants[0] else welch_p(first_frames, capped)
         entry["final_success"] = [final_success(rows) for rows in logs]
+        entry["late_change"] = [late_change(rows) for rows in logs]
         entry["training_seconds"] = [training_seconds(r) for r in mine]
         entry["eval"] = {h: {m: [None if evals[(r.relative, h)] is None else evals[(r.relative, h)][m] for r in mine]
                              for m in ("success_rate", "spl")} for h in exp.evaluations}
@@ -746,28 +760,30 @@ def plot(summary: dict, out, title: str) -> None:
     fig.savefig(out, dpi=100)
 
 
-def format_estimate(values, lo: float = 0.0, hi: float = 1.0) -> str:
+def format_estimate(values, lo: float = 0.0, hi: float = 1.0, fmt: Callable[[float], str] = "{:.2f}".format) -> str:
     """`0.62 [0.55, 0.69]` over the values present; `(n=k)` when some are missing; – when none is."""
     est = estimate(values, lo, hi)
     if est is None:
         return "–"
-    return est.format() + ("" if est.n == len(values) else f" (n={est.n})")
+    return est.format(fmt) + ("" if est.n == len(values) else f" (n={est.n})")
 
 
 def table(summary: dict, evaluations: Sequence[str]) -> str:
     """The markdown table of a summary: per variant, the mean over seeds and its 95%
     t-interval; then the baselines' evaluation numbers."""
-    head = ["variant", f"frames to success {summary['threshold']:g}", "final training success"]
+    head = ["variant", f"frames to success {summary['threshold']:g}", "final training success",
+            f"change over the last {FINAL_FRACTION:.0%}"]
     for h in evaluations:
         head += [f"success, {EVAL_SETS[h]}", f"SPL, {EVAL_SETS[h]}"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for label, v in summary["variants"].items():
-        cells = [label, format_frames(v["frames_to_threshold"], v["frames_max"]), format_estimate(v["final_success"])]
+        cells = [label, format_frames(v["frames_to_threshold"], v["frames_max"]), format_estimate(v["final_success"]),
+                 format_estimate(v.get("late_change", []), -1.0, 1.0, "{:+.2f}".format)]
         for h in evaluations:
             cells += [format_estimate(v["eval"][h]["success_rate"]), format_estimate(v["eval"][h]["spl"])]
         lines.append("| " + " | ".join(cells) + " |")
     for policy, label in BASELINE_LABELS.items():
-        cells = [label, "–", "–"]
+        cells = [label, "–", "–", "–"]
         for h in evaluations:
             r = summary["baselines"].get(policy, {}).get(h)
             cells += ["–", "–"] if r is None else [f"{r['success_rate']:.2f}", f"{r['spl']:.2f}"]
@@ -849,7 +865,8 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         f"Frames to threshold: the first log row at which the training success rate, a running mean over "
         f"{SMOOTH_FRACTION:.0%} of the run, reaches {threshold:g}; the mean and interval are over the runs that reach "
         f"it, and the runs that never do are counted. Final training success: the last {FINAL_FRACTION:.0%} of the "
-        f"run. Baselines, evaluated like the runs but with no training: a {BASELINE_LABELS['random']} and the "
+        f"run; its change: that minus the {FINAL_FRACTION:.0%} before it (above 0: still improving when the run "
+        f"ended). Baselines, evaluated like the runs but with no training: a {BASELINE_LABELS['random']} and the "
         f"{BASELINE_LABELS['oracle']} (`env.oracle`)."
         + (" The blind variant (`agent.blind=true`) trains like the others on images of zeros: what it reaches "
            "needs no sight." if any("agent.blind=true" in v.overrides for v in exp.variants) else "")
