@@ -9,6 +9,7 @@ import json
 import math
 import shutil
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -47,6 +48,21 @@ def test_every_experiment_has_the_blind_control_of_its_task():
             path = exp.config_path(scale)
             assert controls[0].cfg == ex.load_config(path, ["seed=0", "agent.blind=true"])
             assert blind_dirs.setdefault((scale, path), controls[0].workdir) == controls[0].workdir
+
+
+def test_the_authors_variants_are_the_preset_and_the_documented_settings():
+    # The network variant is configs/presets/authors_network.yaml (padded for 32 px), the
+    # loss variant the `--set` line of docs/method.md, so the experiment follows both.
+    quickstart = ex.CONFIGS / "quickstart.yaml"
+    preset = ex.CONFIGS / "presets" / "authors_network.yaml"
+    assert ex.load_config(quickstart, ex.AUTHORS_NETWORK) == ex.load_config([quickstart, preset],
+                                                                            ["agent.conv_padding=same"])
+    method = (Path(__file__).parents[1] / "docs" / "method.md").read_text()
+    documented = method.split("The authors' loss settings in one line")[1].split("```")[1]
+    assert documented.replace("--set", " ").replace("\\", " ").split() == list(ex.AUTHORS_LOSSES)
+    labels = [v.label for v in ex.EXPERIMENTS["authors"].variants]
+    assert labels[0] == "A2CAT-VN" and ex.EXPERIMENTS["authors"].variants[0] == ex.EXPERIMENTS["sight"].variants[0]
+    assert len(labels) == 4
 
 
 def test_learning_by_sight_experiments():
