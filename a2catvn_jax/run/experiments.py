@@ -655,16 +655,21 @@ def _mean_success(rows: list[dict]) -> float:
     return float(np.mean(values)) if values else math.nan
 
 
+def _final_count(rows: list[dict]) -> int:
+    """How many rows make the last FINAL_FRACTION of a training log (at least one)."""
+    return max(1, round(FINAL_FRACTION * len(rows)))
+
+
 def final_success(rows: list[dict]) -> float:
     """The mean training success rate over the last FINAL_FRACTION of a training log."""
-    return _mean_success(rows[-max(1, round(FINAL_FRACTION * len(rows))):])
+    return _mean_success(rows[-_final_count(rows):])
 
 
 def late_change(rows: list[dict]) -> float:
     """The training success rate's change at the end of a log: the mean over its last
     FINAL_FRACTION of rows minus the mean over the FINAL_FRACTION before those. Above 0:
     the run was still improving when it ended."""
-    k = max(1, round(FINAL_FRACTION * len(rows)))
+    k = _final_count(rows)
     if len(rows) < 2 * k:
         return math.nan
     return _mean_success(rows[-k:]) - _mean_success(rows[-2 * k:-k])
@@ -800,7 +805,7 @@ def table(summary: dict, evaluations: Sequence[str]) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for label, v in summary["variants"].items():
         cells = [label, format_frames(v["frames_to_threshold"], v["frames_max"]), format_estimate(v["final_success"]),
-                 format_estimate(v.get("late_change", []), -1.0, 1.0, "{:+.2f}".format)]
+                 format_estimate(v["late_change"], -1.0, 1.0, "{:+.2f}".format)]
         for h in evaluations:
             cells += [format_estimate(v["eval"][h]["success_rate"]), format_estimate(v["eval"][h]["spl"])]
         lines.append("| " + " | ".join(cells) + " |")
