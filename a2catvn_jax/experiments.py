@@ -42,7 +42,8 @@ the store, so on a fresh clone `python -m a2catvn_jax.experiments NAME` re-plots
 re-tabulates without training, and more `--seeds` train only the missing ones.
 `--stored-seeds` uses the seeds stored for every variant and trains nothing;
 `--all-stored` reports every stored run, however many seeds each variant has (a look at
-an experiment part-way), and trains nothing. `--jobs N`
+an experiment part-way; a variant with none stored yet is left out and named), and
+trains nothing. `--jobs N`
 trains N runs at once, each in its own process pinned to its share of the CPU cores
 (its log in `train.log` in the run's directory under ROOT): on a CPU with few cores a
 small run leaves cores idle, so runs side by side finish sooner in all
@@ -87,8 +88,8 @@ def main(argv=None) -> None:
     seeds.add_argument("--stored-seeds", action="store_true",
                        help="the seeds stored for every variant; trains nothing")
     seeds.add_argument("--all-stored", action="store_true",
-                       help="every stored run, however many seeds each variant has (a part-way report); "
-                            "trains nothing")
+                       help="every stored run, however many seeds each variant has (a part-way report; "
+                            "variants with none stored are left out); trains nothing")
     parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes per run and set")
     parser.add_argument("--threshold", type=float, default=None,
                         help="training success rate for 'frames to threshold' (default: the experiment's, per scale)")

@@ -343,14 +343,23 @@ def test_all_stored_reports_each_variants_stored_runs_part_way(trained, from_sto
     assert "Seeds: a 0–2 (3); b 0, 1 (2); a again 0–2 (3)." in text
     cli.main(["tiny", "--stored-seeds", *where])  # the seeds stored for every variant
     assert "Seeds: 0, 1 (2 runs per variant)." in (root / "docs" / "results.md").read_text()
-    # A variant with no stored run cannot be reported: one line that names it.
-    monkeypatch.setitem(ex.EXPERIMENTS, "tiny", tiny(TINY_VARIANTS + (ex.Variant("c", ("train.max_grad_norm=1",)),)))
+    # A variant with no stored run is left out of the part-way report and named in it ...
+    c = ex.Variant("c", ("train.max_grad_norm=1",))
+    monkeypatch.setitem(ex.EXPERIMENTS, "tiny", tiny(TINY_VARIANTS + (c,)))
     capsys.readouterr()
+    cli.main(["tiny", "--all-stored", *where])
+    assert "left out of this part-way report, none of their runs stored yet: 'c'" in capsys.readouterr().out
+    summary = json.loads((root / "docs" / "experiments" / "runs" / "cpu" / "tiny.json").read_text())
+    assert list(summary["variants"]) == ["a", "b", "a again"] and summary["not_stored"] == ["c"]
+    text = (root / "docs" / "results.md").read_text()
+    assert "Not in this part-way report, no run stored yet: c." in text and "| c |" not in text
+    # ... but not the first variant, the one the others are compared with: one line that names it.
+    monkeypatch.setitem(ex.EXPERIMENTS, "tiny", tiny((c,) + TINY_VARIANTS))
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["tiny", "--all-stored", *where])
     assert exit_info.value.code == 2
     errors = capsys.readouterr().err.strip().splitlines()
-    assert len(errors) == 1 and errors[0].startswith("error: tiny: no run of 'c' is stored in ")
+    assert len(errors) == 1 and errors[0].startswith("error: tiny: no run of 'c' (the variant the others are compared")
 
 
 def test_jobs_train_each_run_by_the_runners_own_command(trained, from_store, monkeypatch, capsys):
