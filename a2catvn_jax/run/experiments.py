@@ -86,9 +86,8 @@ BASELINE_DIR = "baselines"
 
 AUX_LOSSES = ("off_policy_critic", "pixel_control", "reward_prediction", "depth", "segmentation", "target_segmentation")
 NO_VN = ("train.loss_weights.depth=0", "train.loss_weights.segmentation=0", "train.loss_weights.target_segmentation=0")
-NO_UNREAL = ("train.loss_weights.off_policy_critic=0", "train.loss_weights.pixel_control=0",
-             "train.loss_weights.reward_prediction=0")
 NO_RP = "train.loss_weights.reward_prediction=0"
+NO_UNREAL = ("train.loss_weights.off_policy_critic=0", "train.loss_weights.pixel_control=0", NO_RP)
 BLIND = ("agent.blind=true",)
 # The loss and replay settings of the authors' published code where they differ from the
 # defaults (docs/method.md), and their network (configs/presets/authors_network.yaml; its
