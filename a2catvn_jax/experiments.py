@@ -17,6 +17,7 @@ Experiments (`EXPERIMENTS`):
   clipping        A2CAT-VN with the gradient-norm clip of Table I (0.5) vs 40, and A2C
   grid            the grid action set on small rooms (A2CAT-VN vs A2C)
   aux_every       the depth and segmentation losses on every frame vs every 4th (train.aux_every)
+  aux_clip40      aux's comparison with the gradient-norm clip at 40 (every loss kept)
 
 Every experiment also has the blind control (`BLIND_CONTROL`): the configured agent
 trained on images of zeros (`agent.blind=true`), so every table shows what needs no

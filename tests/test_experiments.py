@@ -120,6 +120,22 @@ def test_shared_variants_share_runs_and_seeds_do_not(tmp_path):
     assert s0.workdir.parent == s1.workdir.parent and s0.workdir != s1.workdir
 
 
+def test_the_clip_40_comparison_shares_runs_and_keeps_every_loss(tmp_path):
+    store = tmp_path / "store"
+    runs = {r.variant.label: r for r in ex.plan(ex.EXPERIMENTS["aux_clip40"], "cpu", [0], "/r", store=store)}
+    clipping = {r.variant.label: r for r in ex.plan(ex.EXPERIMENTS["clipping"], "cpu", [0], "/r", store=store)}
+    aux = {r.variant.label: r for r in ex.plan(ex.EXPERIMENTS["aux"], "cpu", [0], "/r", store=store)}
+    assert runs["A2CAT-VN, clip 40"].workdir == clipping["A2CAT-VN, clip 40"].workdir
+    assert runs["A2C"].workdir == aux["A2C"].workdir and runs["blind A2CAT-VN"].workdir == aux["blind A2CAT-VN"].workdir
+    pre, unreal = runs["A2CAT-VN (pre-trained), clip 40"], runs["A2C+UNREAL, clip 40"]
+    assert pre.variant.pretrain and pre.cfg == runs["A2CAT-VN, clip 40"].cfg
+    assert pre.workdir not in (runs["A2CAT-VN, clip 40"].workdir, aux["A2CAT-VN (pre-trained)"].workdir)
+    assert pre.cfg.train.max_grad_norm == unreal.cfg.train.max_grad_norm == 40
+    assert unreal.cfg.train.loss_weights == aux["A2C+UNREAL"].cfg.train.loss_weights
+    w = pre.cfg.train.loss_weights
+    assert all(getattr(w, loss) > 0 for loss in ex.AUX_LOSSES)
+    assert aux["A2CAT-VN"].cfg.train.max_grad_norm == 0.5
+
 def test_unknown_scale_and_bad_overrides_are_errors():
     with pytest.raises(ex.ExperimentError, match="scale"):
         ex.EXPERIMENTS["aux"].config_path("laptop")
