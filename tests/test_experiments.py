@@ -136,6 +136,7 @@ def test_the_clip_40_comparison_shares_runs_and_keeps_every_loss(tmp_path):
     assert all(getattr(w, loss) > 0 for loss in ex.AUX_LOSSES)
     assert aux["A2CAT-VN"].cfg.train.max_grad_norm == 0.5
 
+
 def test_unknown_scale_and_bad_overrides_are_errors():
     with pytest.raises(ex.ExperimentError, match="scale"):
         ex.EXPERIMENTS["aux"].config_path("laptop")
