@@ -180,7 +180,7 @@ EXPERIMENTS = {e.name: e for e in (
         (Variant("A2CAT-VN without reward prediction", (NO_RP,)),
          Variant("A2C+UNREAL without reward prediction", NO_VN + (NO_RP,)), Variant("A2C", NO_VN + NO_UNREAL),
          BLIND_CONTROL),
-        paper="The paper's House3D comparison (with and without the visual-navigation losses) with the "
+        paper="Its House3D comparison (with and without the visual-navigation losses), here with the "
               "reward-prediction loss off in both, the loss whose gradient dominates the shared layers at the "
               "defaults (docs/results.md). Its A2CAT-VN runs are the ablations experiment's 'without reward "
               "prediction', its A2C and blind runs the aux experiment's.",
@@ -242,7 +242,7 @@ EXPERIMENTS = {e.name: e for e in (
         "image_goals",
         (Variant("A2CAT-VN (pre-trained), clip 40", (CLIP_40,), pretrain=True), Variant("A2CAT-VN, clip 40", (CLIP_40,)),
          Variant("A2C+UNREAL, clip 40", NO_VN + (CLIP_40,)), Variant("A2C", NO_VN + NO_UNREAL), BLIND_CONTROL),
-        paper="The paper's House3D comparison (with and without the visual-navigation losses) with every loss "
+        paper="Its House3D comparison (with and without the visual-navigation losses), here with every loss "
               "kept and the gradient-norm clip at 40, which no update reaches: at Table I's 0.5 the clip acts on "
               "every update with reward prediction and slows learning on this task (the clipping experiment). Its "
               "A2CAT-VN, clip 40 runs are the clipping experiment's, its A2C and blind runs the aux experiment's.",
