@@ -4,6 +4,7 @@
         [--episodes 100] [--threshold T] [--root runs/experiments] [--store docs/experiments/runs]
         [--docs docs] [--skip-missing] [--jobs N] [--set KEY=VALUE ...]
     python -m a2catvn_jax.experiments --list [NAME ...] [--scale cpu|paper] [--store DIR]
+    python -m a2catvn_jax.experiments --compare EXPERIMENT:LABEL EXPERIMENT:LABEL [...] [--scale cpu|paper]
 
 Experiments (`EXPERIMENTS`):
   sight           A2CAT-VN vs the same agent blind on the quickstart task (configs/quickstart.yaml)
@@ -52,7 +53,10 @@ small run leaves cores idle, so runs side by side finish sooner in all
 evaluation a stored run lacks (another `--episodes`) needs that run's checkpoint in
 ROOT; without it the command stops with an error naming the run, unless
 `--skip-missing` leaves those numbers out. `--list` shows how many seeds of each
-variant are stored.
+variant are stored. `--compare` sets variants of different experiments side by side
+from their stored reports (`run.compare`: frames to threshold, final and evaluation
+success, the logged gradient norms against each run's clip, and Welch's tests against
+the first variant named); it trains nothing.
 
 Outputs: `DOCS/experiments/NAME_SCALE.png` (training success rate and episode length
 against frames: the mean over seeds, shaded with its 95% t-band; the threshold and the
@@ -73,6 +77,7 @@ import sys
 from a2catvn_jax import cli
 from a2catvn_jax.config import ConfigError
 from a2catvn_jax.errors import Interrupted
+from a2catvn_jax.run import compare
 from a2catvn_jax.run import experiments as ex
 from a2catvn_jax.run.experiments import EXPERIMENTS, ExperimentError
 
@@ -82,6 +87,9 @@ def main(argv=None) -> None:
     parser.add_argument("name", nargs="*", help="experiment: " + ", ".join(EXPERIMENTS))
     parser.add_argument("--list", action="store_true",
                         help="list the experiments (or the NAMEs), their variants and how many seeds of each are stored")
+    parser.add_argument("--compare", nargs="+", metavar="EXPERIMENT:LABEL", default=None,
+                        help="set these variants of stored reports side by side and test each against the first "
+                             "(e.g. 'aux:A2C+UNREAL' 'aux_clip40:A2C+UNREAL, clip 40'); trains nothing")
     parser.add_argument("--scale", choices=ex.SCALES, default=None, help="default: cpu (--list: both)")
     seeds = parser.add_mutually_exclusive_group()
     seeds.add_argument("--seeds", type=int, nargs="+", default=list(ex.DEFAULT_SEEDS),
@@ -114,6 +122,12 @@ def main(argv=None) -> None:
     if unknown:
         parser.error(f"unknown experiment {unknown[0]!r}; choose one of {', '.join(EXPERIMENTS)}")
     store = args.store or f"{args.docs}/experiments/runs"
+    if args.compare is not None:
+        if args.name or args.list:
+            parser.error("--compare takes EXPERIMENT:LABEL arguments only, no experiment NAME or --list")
+        with cli.errors(parser, code=2, kinds=(compare.CompareError, ValueError)):
+            print(compare.compare(args.compare, args.scale or "cpu", store))
+        return
     if args.list:
         with cli.errors(parser, code=2, kinds=(ConfigError, ExperimentError, ValueError)):
             print(ex.listing(store, [args.scale] if args.scale else ex.SCALES, args.name, cli.overrides_of(args)))

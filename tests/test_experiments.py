@@ -18,6 +18,7 @@ from scipy import stats
 from a2catvn_jax import experiments as cli
 from a2catvn_jax.config import load_config, save_config
 from a2catvn_jax.errors import Interrupted
+from a2catvn_jax.run import compare
 from a2catvn_jax.run import experiments as ex
 from tiny import TINY_LEARNER
 
@@ -496,3 +497,18 @@ def test_train_only_some_variants(trained, from_store, monkeypatch):
     assert lines[-1].startswith("not reported: 3 run(s)")
     summary, _ = run_tiny(root, seeds=(0, 1), train_only=["b"])  # all stored: reported as before
     assert summary["variants"]["b"]["seeds"] == [0, 1]
+
+
+def test_a_stored_report_compares_with_another_experiments(trained, from_store):
+    """`--compare` reads what `run_experiment` stored: the same numbers as the report's own
+    tests for two variants of one experiment, and the runs' logged gradient norms."""
+    root, summary, _, _ = trained
+    store = root / "docs" / "experiments" / "runs"
+    text = compare.compare(["tiny:a", "tiny:b"], "cpu", store)
+    a, = [line for line in text.splitlines() if line.startswith("| a | tiny | 0, 1 |")]
+    norms = [json.loads(line)["grad_norm"] for rel in summary["variants"]["a"]["runs"]
+             for line in (store / rel / "metrics.jsonl").read_text().splitlines()]
+    assert a.endswith(f"| {sum(g > 0.5 for g in norms)}/{len(norms)} (clip 0.5) |")  # the default clip
+    b, = [line for line in text.splitlines() if line.startswith("| b (tiny) |")]
+    p = summary["variants"]["b"]["welch_p_frames_vs_first"]
+    assert b.split("|")[2].strip() == ("–" if p is None else f"{p:.2g}")

@@ -1,0 +1,114 @@
+"""Comparing variants of different experiments from their stored summaries
+(`run.compare`, `experiments --compare`): the numbers against NumPy and SciPy on a
+hand-made store, and a clear one-line error for each thing that can be missing."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from a2catvn_jax import experiments as cli
+from a2catvn_jax.run import compare
+from a2catvn_jax.run import experiments as ex
+
+GRAD_NORMS = {  # per variant, per run: the logged gradient norms
+    "slow": [[0.6, 0.7, 0.4, 0.9], [0.8, 0.3, 0.55, 1.2]],
+    "fast": [[2.0, 3.5, 1.5], [45.0, 2.5, 3.0, 2.2], [1.0, 1.1]],
+}
+CLIPS = {"slow": 0.5, "fast": 40.0}
+
+
+def write_store(root, threshold_b=0.5):
+    """Experiment "ea" with variants "slow" (2 runs, one never reaches the threshold) and
+    "other"; experiment "eb" with "fast" (3 runs, each with a held-out evaluation)."""
+    def entry(name, seeds, frames, final, train, held_out=None):
+        runs = []
+        for seed, norms in zip(seeds, GRAD_NORMS.get(name, [[1.0]] * len(seeds))):
+            rel = f"cpu/image_goals/{name}/seed_{seed}"
+            (root / rel).mkdir(parents=True)
+            (root / rel / "metrics.jsonl").write_text(
+                "".join(json.dumps({"frames": 8 * (i + 1), "grad_norm": g}) + "\n" for i, g in enumerate(norms)))
+            (root / rel / "config.yaml").write_text(f"train:\n  max_grad_norm: {CLIPS.get(name, 0.5)}\n")
+            runs.append(rel)
+        ev = {"train": {"success_rate": train, "spl": train}}
+        if held_out:
+            ev["held-out"] = {"success_rate": held_out, "spl": held_out}
+        return {"seeds": seeds, "runs": runs, "frames_to_threshold": frames, "frames_max": 3e6,
+                "final_success": final, "eval": ev}
+
+    (root / "cpu").mkdir(parents=True)
+    (root / "cpu" / "ea.json").write_text(json.dumps({"threshold": 0.5, "variants": {
+        "slow": entry("slow", [0, 1], [2.1e6, None], [0.6, 0.3], [0.62, 0.35]),
+        "other": entry("other", [0, 1], [1e6, 1.2e6], [0.9, 0.8], [0.9, 0.85])}}))
+    (root / "cpu" / "eb.json").write_text(json.dumps({"threshold": threshold_b, "variants": {
+        "fast": entry("fast", [0, 1, 2], [1.1e6, 0.9e6, 1.6e6], [0.95, 0.97, 0.9], [0.96, 1.0, 0.9],
+                      held_out=[0.2, 0.3, 0.25])}}))
+
+
+def rows_of(text, first_cell):
+    return [[c.strip() for c in line.strip("|").split("|")] for line in text.splitlines()
+            if line.startswith(f"| {first_cell} |")]
+
+
+def test_numbers_match_numpy_and_scipy(tmp_path):
+    write_store(tmp_path)
+    text = compare.compare(["ea:slow", "eb:fast"], "cpu", tmp_path)
+    slow, = rows_of(text, "slow")
+    fast, = rows_of(text, "fast")
+    assert slow[:5] == ["slow", "ea", "0, 1", "2.1M, 1/2 reached; 1 not by 3.0M",
+                        ex.format_estimate([0.6, 0.3])]
+    assert fast[2] == "0–2" and fast[3].endswith("3/3 reached")
+    assert slow[6] == "–"  # "slow" has no held-out evaluation
+    # Gradient norms: the range of the runs' medians, of all logged norms, and the logged updates above each run's clip.
+    medians = [np.median(g) for g in GRAD_NORMS["fast"]]
+    assert fast[-2] == f"{min(medians):.2f}–{max(medians):.2f}; 1.00–45.00"
+    assert fast[-1] == "1/9 (clip 40)"
+    assert slow[-1] == f"{sum(x > 0.5 for g in GRAD_NORMS['slow'] for x in g)}/8 (clip 0.5)"
+    # Welch's tests against the first variant; frames to threshold count a run that never reaches it at 3M.
+    head = next(line for line in text.splitlines() if line.startswith("| Welch's p"))
+    assert "against slow (ea)" in head and "success, held-out houses" not in head  # only sets both have
+    p = rows_of(text, "fast (eb)")[0][1:]
+    expected = [stats.ttest_ind(a, b, equal_var=False).pvalue for a, b in (
+        ([2.1e6, 3e6], [1.1e6, 0.9e6, 1.6e6]), ([0.6, 0.3], [0.95, 0.97, 0.9]), ([0.62, 0.35], [0.96, 1.0, 0.9]))]
+    assert p == [f"{x:.2g}" for x in expected]
+
+
+def test_the_command_line_prints_the_comparison(tmp_path, capsys):
+    write_store(tmp_path)
+    cli.main(["--compare", "ea:slow", "ea:other", "eb:fast", "--store", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert len(rows_of(out, "other (ea)")) == 1 and len(rows_of(out, "fast (eb)")) == 1
+
+
+@pytest.mark.parametrize("args, message", [
+    (["ea:slow"], "at least two variants"),
+    (["ea:slow", "eb"], "name a variant as EXPERIMENT:LABEL"),
+    (["ea:slow", "nowhere:x"], "no stored summary of 'nowhere'"),
+    (["ea:slow", "ea:fast"], "ea has no reported variant 'fast'; its variants: 'slow', 'other'"),
+    (["ea:slow", "eb:fast", "--scale", "paper"], "no stored summary of 'ea' at paper scale"),
+    (["aux", "--compare", "ea:slow", "eb:fast"], "--compare takes EXPERIMENT:LABEL arguments only"),
+])
+def test_bad_comparisons_are_one_line_errors(tmp_path, capsys, args, message):
+    write_store(tmp_path)
+    if args[0] != "aux":
+        args = ["--compare", *args]
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([*args, "--store", str(tmp_path)])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert message in err and "Traceback" not in err
+
+
+def test_different_thresholds_and_unreadable_runs_are_refused(tmp_path):
+    write_store(tmp_path, threshold_b=0.7)
+    with pytest.raises(compare.CompareError, match="different success thresholds"):
+        compare.load_variants(["ea:slow", "eb:fast"], "cpu", tmp_path)
+    (tmp_path / "cpu" / "image_goals" / "other" / "seed_1" / "metrics.jsonl").unlink()
+    with pytest.raises(compare.CompareError, match="other/seed_1 cannot be read"):
+        compare.compare(["ea:slow", "ea:other"], "cpu", tmp_path)
+    (tmp_path / "cpu" / "ea.json").write_text("{not json")
+    with pytest.raises(compare.CompareError, match="ea.json cannot be read as an experiment summary"):
+        compare.compare(["ea:slow", "ea:other"], "cpu", tmp_path)
