@@ -22,10 +22,10 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
-import yaml
 
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.run import experiments as ex
+from a2catvn_jax.run.checkpoint import CheckpointError, read_run_config
 
 
 class CompareError(UserError):
@@ -75,21 +75,21 @@ def load_variants(specs: Sequence[str], scale: str = "cpu", store=ex.DEFAULT_STO
 def gradient_norms(variant: dict, store=ex.DEFAULT_STORE) -> Optional[dict]:
     """Per run of `variant`: the median, smallest and largest logged gradient norm (the whole
     update's, before clipping), how many logged updates exceed the run's clip
-    (`train.max_grad_norm`) and how many were logged; None when the logs have no norm."""
+    (`train.max_grad_norm` of its stored configuration, read as training reads an older
+    run's) and how many were logged; None when the logs have no norm."""
     runs = []
     for rel in variant["runs"]:
         directory = Path(store) / rel
         try:
             rows = [json.loads(line) for line in (directory / "metrics.jsonl").read_text().splitlines() if line]
-            cfg = yaml.safe_load((directory / ex.CONFIG_FILE).read_text()) or {}
-        except (OSError, ValueError, yaml.YAMLError) as err:
+            clip = float(read_run_config(directory).train.max_grad_norm)
+        except (OSError, ValueError, CheckpointError) as err:
             raise CompareError(f"stored run {directory} cannot be read: {err}") from None
         norms = np.array([r["grad_norm"] for r in rows if r.get("grad_norm") is not None], float)
         if norms.size == 0:
             return None
-        clip = float(cfg.get("train", {}).get("max_grad_norm", math.inf))
-        runs.append({"median": float(np.median(norms)), "min": float(norms.min()), "max": float(norms.max()), "clip": clip,
-                     "above": int((norms > clip).sum()), "logged": int(norms.size)})
+        runs.append({"median": float(np.median(norms)), "min": float(norms.min()), "max": float(norms.max()),
+                     "clip": clip, "above": int((norms > clip).sum()), "logged": int(norms.size)})
     return {"runs": runs}
 
 
@@ -101,7 +101,8 @@ def _norm_cells(norms: Optional[dict]) -> list[str]:
     clips = sorted({r["clip"] for r in runs})
     spread = f"{min(medians):.2f}" if len(medians) == 1 else f"{min(medians):.2f}–{max(medians):.2f}"
     return [f"{spread}; {min(r['min'] for r in runs):.2f}–{max(r['max'] for r in runs):.2f}",
-            f"{sum(r['above'] for r in runs)}/{sum(r['logged'] for r in runs)} (clip {', '.join(f'{c:g}' for c in clips)})"]
+            f"{sum(r['above'] for r in runs)}/{sum(r['logged'] for r in runs)} "
+            f"(clip {', '.join(f'{c:g}' for c in clips)})"]
 
 
 def _capped(variant: dict) -> list[float]:
@@ -144,6 +145,6 @@ def compare(specs: Sequence[str], scale: str = "cpu", store=ex.DEFAULT_STORE) ->
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "Frames to threshold: the runs that reach it (mean, 95% t-interval) and how many do not; "
               "Welch's test counts a run that never reaches it at its last frame. Success: mean over the seeds "
-              "and its 95% t-interval. Gradient norm: the whole update's, before clipping, over the logged "
-              "updates of each run."]
+              "and its 95% t-interval. Gradient norm, the whole update's before clipping: the range of the runs' "
+              "medians over their logged updates; the range of all logged norms."]
     return "\n".join(lines)
