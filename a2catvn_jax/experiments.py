@@ -5,6 +5,7 @@
         [--docs docs] [--skip-missing] [--jobs N] [--set KEY=VALUE ...]
     python -m a2catvn_jax.experiments --list [NAME ...] [--scale cpu|paper] [--store DIR]
     python -m a2catvn_jax.experiments --compare EXPERIMENT:LABEL EXPERIMENT:LABEL [...] [--scale cpu|paper]
+        [--store DIR]
 
 Experiments (`EXPERIMENTS`):
   sight           A2CAT-VN vs the same agent blind on the quickstart task (configs/quickstart.yaml)
@@ -123,8 +124,15 @@ def main(argv=None) -> None:
         parser.error(f"unknown experiment {unknown[0]!r}; choose one of {', '.join(EXPERIMENTS)}")
     store = args.store or f"{args.docs}/experiments/runs"
     if args.compare is not None:
-        if args.name or args.list:
-            parser.error("--compare takes EXPERIMENT:LABEL arguments only, no experiment NAME or --list")
+        given = [option for option, used in (
+            ("NAME", args.name), ("--list", args.list), ("--seeds", args.seeds != list(ex.DEFAULT_SEEDS)),
+            ("--stored-seeds", args.stored_seeds), ("--all-stored", args.all_stored), ("--episodes", args.episodes != 100),
+            ("--threshold", args.threshold is not None), ("--train-only", args.train_only is not None),
+            ("--skip-missing", args.skip_missing), ("--jobs", args.jobs != 1), ("--set", cli.overrides_of(args)))
+            if used]
+        if given:
+            parser.error(f"--compare reads the stored reports as they are; it takes no {', '.join(given)} "
+                         "(only EXPERIMENT:LABEL arguments, --scale, --store and --docs)")
         with cli.errors(parser, code=2, kinds=(compare.CompareError, ValueError)):
             print(compare.compare(args.compare, args.scale or "cpu", store))
         return

@@ -509,6 +509,9 @@ def test_a_stored_report_compares_with_another_experiments(trained, from_store):
     norms = [json.loads(line)["grad_norm"] for rel in summary["variants"]["a"]["runs"]
              for line in (store / rel / "metrics.jsonl").read_text().splitlines()]
     assert a.endswith(f"| {sum(g > 0.5 for g in norms)}/{len(norms)} (clip 0.5) |")  # the default clip
+    v = summary["variants"]["a"]
+    assert f"| {ex.format_frames(v['frames_to_threshold'], v['frames_max'])} | {ex.format_estimate(v['final_success'])} |" in a
+    assert "each log row holds one update's" in text  # TINY logs every update
     b, = [line for line in text.splitlines() if line.startswith("| b (tiny) |")]
     p = summary["variants"]["b"]["welch_p_frames_vs_first"]
     assert b.split("|")[2].strip() == ("–" if p is None else f"{p:.2g}")

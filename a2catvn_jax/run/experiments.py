@@ -243,8 +243,9 @@ EXPERIMENTS = {e.name: e for e in (
         (Variant("A2CAT-VN (pre-trained), clip 40", (CLIP_40,), pretrain=True), Variant("A2CAT-VN, clip 40", (CLIP_40,)),
          Variant("A2C+UNREAL, clip 40", NO_VN + (CLIP_40,)), Variant("A2C", NO_VN + NO_UNREAL), BLIND_CONTROL),
         paper="Its House3D comparison (with and without the visual-navigation losses), here with every loss "
-              "kept and the gradient-norm clip at 40, which no update reaches: at Table I's 0.5 the clip acts on "
-              "every update with reward prediction and slows learning on this task (the clipping experiment). Its "
+              "kept and the gradient-norm clip at 40, far above the logged gradient norms: at Table I's 0.5 the clip "
+              "acts throughout training with reward prediction and slows learning on this task (the clipping "
+              "experiment). Its "
               "A2CAT-VN, clip 40 runs are the clipping experiment's, its A2C and blind runs the aux experiment's.",
     ),
     Experiment(
@@ -853,7 +854,7 @@ def machine() -> str:
     return f"{os.cpu_count()}-core {cpu}; jax {jax.__version__} on {jax.default_backend()} ({devices})"
 
 
-def _seeds_text(seeds: Sequence[int]) -> str:
+def seeds_text(seeds: Sequence[int]) -> str:
     seeds = sorted(seeds)
     if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1)):
         return f"{seeds[0]}–{seeds[-1]}"
@@ -884,9 +885,9 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
     first_seeds = next(iter(seeds.values()))
     n = min(len(s) for s in seeds.values())
     if all(s == first_seeds for s in seeds.values()):
-        seeds_text = f"{_seeds_text(first_seeds)} ({n} run{'s' if n > 1 else ''} per variant)"
+        seeds_line = f"{seeds_text(first_seeds)} ({n} run{'s' if n > 1 else ''} per variant)"
     else:  # a part-way report (`stored_only`)
-        seeds_text = "; ".join(f"{label} {_seeds_text(s)} ({len(s)})" for label, s in seeds.items())
+        seeds_line = "; ".join(f"{label} {seeds_text(s)} ({len(s)})" for label, s in seeds.items())
     threshold = summary["threshold"]
     lines = [
         f"### {exp.title} ({scale} scale)",
@@ -898,7 +899,7 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
                     for v in exp.variants) + ".  ",
         *([f"Not in this part-way report, no run stored yet: {'; '.join(summary['not_stored'])}.  "]
           if summary.get("not_stored") else []),
-        f"Seeds: {seeds_text}. Evaluation: {summary['episodes']} "
+        f"Seeds: {seeds_line}. Evaluation: {summary['episodes']} "
         f"episodes per run and house set, sampled policy, complexity 1.  ",
         _provenance(summary) + " Mean training wall time per run: "
         + "; ".join(f"{label} {_mean_minutes(v['training_seconds'])}" for label, v in summary["variants"].items())
@@ -973,7 +974,7 @@ def listing(store=DEFAULT_STORE, scales: Sequence[str] = SCALES, names: Optional
                 known |= set(stored[v.label].values())
                 what = " ".join(v.overrides) or "as configured"
                 lines.append(f"  {scale:5s} {v.label}: {len(seeds)} stored"
-                             f"{f' (seeds {_seeds_text(seeds)})' if seeds else ''}"
+                             f"{f' (seeds {seeds_text(seeds)})' if seeds else ''}"
                              f" [{keys[v]}: {what}{' + pre-training' if v.pretrain else ''}]")
     others = []
     for scale in scales:
