@@ -62,8 +62,11 @@ def main(argv=None) -> None:
             cfg = cli.config_from_args(args, default=DEFAULT_CONFIG)
 
     with cli.errors(parser, code=1):
-        train(cfg, workdir, resume=args.resume, max_updates=args.updates, progress=not args.no_progress,
-              init_from=args.init_from)
+        try:
+            train(cfg, workdir, resume=args.resume, max_updates=args.updates, progress=not args.no_progress,
+                  init_from=args.init_from)
+        except KeyboardInterrupt:
+            parser.exit(130, f"aborted without a checkpoint; `--workdir {workdir} --resume` goes on from the last one\n")
 
 
 if __name__ == "__main__":

@@ -212,8 +212,9 @@ def test_runs_of_one_configuration_share_its_build_and_keep_their_seeds(tmp_path
 
 def test_sigterm_stops_training_after_the_update_with_a_checkpoint(tmp_path):
     """`train` itself, in this process (Ctrl-C's SIGINT goes to a process of its own above):
-    SIGTERM arrives while update 3 is logged; the run stops after that update, checkpoints
-    it and puts the previous handler back."""
+    SIGTERM arrives twice while update 3 is logged (as `timeout` sends it, to the command and
+    to its process group); the run stops after that update, checkpoints it and puts the
+    previous handler back."""
     import os
     import signal
 
@@ -225,12 +226,40 @@ def test_sigterm_stops_training_after_the_update_with_a_checkpoint(tmp_path):
         lines.append(line)
         if line.startswith("update 3 "):
             os.kill(os.getpid(), sig)
+            os.kill(os.getpid(), sig)
 
     _, state, _ = train(_cfg("train.checkpoint_every=100000"), tmp_path, max_updates=100000, progress=False, log=log)
     assert int(state.update) == 3 and read_jsonl(tmp_path / "metrics.jsonl")[-1]["update"] == 3
     assert max(Checkpointer(tmp_path, create=False).steps()) == 3
     assert any(line.startswith("checkpoint at update 3 ") for line in lines), lines
     assert signal.getsignal(sig) is before
+
+
+def test_second_ctrl_c_aborts_with_one_line(monkeypatch, tmp_path, capsys):
+    """The stop flag: a repeated SIGTERM stays a request to stop, a second Ctrl-C interrupts;
+    the command line turns that interruption into one line and exit status 130."""
+    import signal
+
+    import a2catvn_jax.train as train_cli
+    from a2catvn_jax.run import training
+
+    flag = training._StopFlag()
+    flag(signal.SIGTERM, None)
+    flag(signal.SIGTERM, None)
+    assert flag.stop
+    with pytest.raises(KeyboardInterrupt):
+        flag(signal.SIGINT, None)
+    assert capsys.readouterr().err.strip() == "stopping after this update"
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_cli, "train", interrupted)
+    with pytest.raises(SystemExit) as exit_:
+        train_cli.main(["--workdir", str(tmp_path)])
+    assert exit_.value.code == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"aborted without a checkpoint; `--workdir {tmp_path} --resume` goes on from the last one"]
 
 
 def test_grad_norm_diagnostic_is_logged_and_changes_nothing(tmp_path, straight):

@@ -35,17 +35,21 @@ class TrainingError(UserError, RuntimeError):
 
 
 class _StopFlag:
-    """The first Ctrl-C (or SIGTERM, as `timeout` and job schedulers send) asks the loop to
-    stop after the current update and checkpoint; the second interrupts."""
+    """Ctrl-C or SIGTERM (as `timeout` and job schedulers send) asks the loop to stop after
+    the current update and checkpoint. A second Ctrl-C interrupts; a second SIGTERM is the
+    same request again (`timeout` sends one to the command and one to its process group)."""
 
     def __init__(self):
         self.stop = False
 
     def __call__(self, signum, frame):
         if self.stop:
-            raise KeyboardInterrupt
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            return
         self.stop = True
-        print("\nstopping after this update (Ctrl-C again to abort without a checkpoint)", file=sys.stderr)
+        again = " (Ctrl-C again to abort without a checkpoint)" if signum == signal.SIGINT else ""
+        print(f"\nstopping after this update{again}", file=sys.stderr)
 
 
 @functools.lru_cache(maxsize=1)
