@@ -158,10 +158,14 @@ def main(argv=None) -> None:
                 raise ExperimentError(f"{exp.name}: no seed is stored for every variant in {store} ("
                                       + "; ".join(f"{label}: {len(s)}" for label, s in stored.items()) + ")"
                                       if args.stored_seeds else f"{exp.name}: no run is stored in {store}")
-        ex.run_experiment(exp, scale=scale, seeds=run_seeds, episodes=args.episodes, root=args.root, docs=args.docs,
-                       store=store, overrides=cli.overrides_of(args), command=command.strip(),
-                       threshold=args.threshold, skip_missing=args.skip_missing, train_only=args.train_only,
-                       jobs=args.jobs, report=not args.no_report, stored_only=args.all_stored)
+        try:
+            ex.run_experiment(exp, scale=scale, seeds=run_seeds, episodes=args.episodes, root=args.root,
+                              docs=args.docs, store=store, overrides=cli.overrides_of(args), command=command.strip(),
+                              threshold=args.threshold, skip_missing=args.skip_missing, train_only=args.train_only,
+                              jobs=args.jobs, report=not args.no_report, stored_only=args.all_stored)
+        except KeyboardInterrupt:  # a second Ctrl-C while a run trains in this process
+            parser.exit(130, "aborted: the run in training keeps only its last checkpoint; "
+                             "the same command resumes each unfinished run from its last checkpoint\n")
 
 
 if __name__ == "__main__":

@@ -437,6 +437,25 @@ def test_an_interrupted_run_stops_the_runner_and_the_same_command_resumes_it(tmp
     assert summary == {"experiment": "tiny_interrupted", "trained": ["a, seed 0"]}
 
 
+def test_a_second_ctrl_c_aborts_the_runner_with_one_line(tmp_path, monkeypatch, capsys):
+    """A second Ctrl-C while a run trains in the runner's own process (`--jobs 1`) ends the
+    command with one line and exit status 130, not a traceback."""
+    exp = tiny((ex.Variant("a"),), name="tiny_aborted")
+    monkeypatch.setitem(ex.EXPERIMENTS, exp.name, exp)
+
+    def aborted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ex, "train", aborted)
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main([exp.name, "--seeds", "0", "--docs", str(tmp_path / "docs"), "--root", str(tmp_path / "runs"),
+                  "--set", *TINY])
+    assert exit_info.value.code == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["aborted: the run in training keeps only its last checkpoint; the same command resumes each "
+                   "unfinished run from its last checkpoint"]
+
+
 def test_a_run_stored_before_new_configuration_keys_is_found(trained, from_store, tmp_path):
     store = tmp_path / "store"
     shutil.copytree(trained[0] / "docs" / "experiments" / "runs", store)
