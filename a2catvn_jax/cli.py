@@ -12,7 +12,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-from typing import Any, Iterator, Optional, Sequence
+import signal
+from typing import Any, Callable, Iterator, Optional, Sequence
 
 from a2catvn_jax.config import Config, load_config
 from a2catvn_jax.errors import UserError
@@ -73,3 +74,13 @@ def errors(parser: argparse.ArgumentParser, code: int = 1, kinds: Sequence[type]
         yield
     except tuple(kinds) as e:
         parser.exit(code, f"error: {one_line(str(e))}\n")
+
+
+def run_stoppable(main: Callable[[], None]) -> None:
+    """Run a command whose work stops with a checkpoint on Ctrl-C (`python -m ...`'s entry).
+    Once `main` is over, a further Ctrl-C while the process exits (a second press that
+    came after the stop had already finished) is ignored rather than a traceback."""
+    try:
+        main()
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -262,6 +262,25 @@ def test_second_ctrl_c_aborts_with_one_line(monkeypatch, tmp_path, capsys):
     assert err == [f"aborted without a checkpoint; `--workdir {tmp_path} --resume` goes on from the last one"]
 
 
+def test_a_ctrl_c_after_the_command_is_over_is_ignored(monkeypatch):
+    """`python -m a2catvn_jax.train` and `.experiments` run under `cli.run_stoppable`: once
+    the command is over (here with exit status 130), a Ctrl-C while the process exits is
+    ignored instead of ending in a traceback from an exit handler."""
+    import signal
+
+    from a2catvn_jax import cli
+
+    monkeypatch.setattr(signal, "signal", lambda sig, handler: calls.append((sig, handler)))
+    calls = []
+
+    def stopped():
+        raise SystemExit(130)
+
+    with pytest.raises(SystemExit):
+        cli.run_stoppable(stopped)
+    assert calls == [(signal.SIGINT, signal.SIG_IGN)]
+
+
 def test_grad_norm_diagnostic_is_logged_and_changes_nothing(tmp_path, straight):
     """`train.grad_norm_every=2`: every second log row has each loss term's gradient norm
     on the shared conv layers; the run's parameters are those of the run without it."""
