@@ -163,7 +163,7 @@ def main(argv=None) -> None:
                               docs=args.docs, store=store, overrides=cli.overrides_of(args), command=command.strip(),
                               threshold=args.threshold, skip_missing=args.skip_missing, train_only=args.train_only,
                               jobs=args.jobs, report=not args.no_report, stored_only=args.all_stored)
-        except KeyboardInterrupt:  # a second Ctrl-C while a run trains in this process
+        except KeyboardInterrupt:  # a second Ctrl-C while a run trains in this process, or one while none does
             parser.exit(130, "aborted: the run in training keeps only its last checkpoint; "
                              "the same command resumes each unfinished run from its last checkpoint\n")
 

@@ -270,8 +270,8 @@ def test_a_ctrl_c_after_the_command_is_over_is_ignored(monkeypatch):
 
     from a2catvn_jax import cli
 
-    monkeypatch.setattr(signal, "signal", lambda sig, handler: calls.append((sig, handler)))
     calls = []
+    monkeypatch.setattr(signal, "signal", lambda sig, handler: calls.append((sig, handler)))
 
     def stopped():
         raise SystemExit(130)
