@@ -231,6 +231,13 @@ EXPERIMENTS = {e.name: e for e in (
         paper="The paper leaves generalisation to unseen houses and unseen targets as future work.",
     ),
     Experiment(
+        "navigation", "levers for navigating unseen houses (room-type goals over many houses)", "house_rooms",
+        (Variant("A2CAT-VN"), Variant("A2CAT-VN, clip 40", (CLIP_40,)),
+         Variant("A2CAT-VN without reward prediction", (NO_RP,)), BLIND_CONTROL),
+        paper="Not in the paper. Each variant changes one setting that learned faster on the house task; "
+              "the A2CAT-VN and blind runs are the generalisation experiment's.",
+    ),
+    Experiment(
         "clipping", "gradient-norm clipping with the auxiliary losses", "image_goals",
         (Variant("A2CAT-VN, clip 0.5"), Variant("A2CAT-VN, clip 40", (CLIP_40,)),
          Variant("A2C, clip 0.5", NO_VN + NO_UNREAL), BLIND_CONTROL),
