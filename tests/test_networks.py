@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from a2catvn_jax.agent import networks
+from a2catvn_jax.agent import layers, networks
 from a2catvn_jax.agent import update as update_lib
 from a2catvn_jax.config import ConfigError, load_config
 from a2catvn_jax.env import NavEnv
@@ -271,7 +271,7 @@ def test_split_conv_is_the_conv_of_the_concatenation(k, s, padding, impl):
 
     def concatenated(p, a, b):
         x = jnp.concatenate([a, b[index]], -1)
-        pads = networks.conv_padding(x.shape[1:3], k, s, padding)
+        pads = layers.conv_padding(x.shape[1:3], k, s, padding)
         y = jax.lax.conv_general_dilated(x, p["params"]["kernel"], (s, s), pads, dimension_numbers=("NHWC", "HWIO", "NHWC"))
         return y + p["params"]["bias"]
 
@@ -288,14 +288,14 @@ def test_conv2d_by_matrix_products_is_xla_convolution(k, s, padding, size, cin, 
     rng = np.random.default_rng(k * 1000 + size * 10 + cout)
     x = jnp.asarray(rng.normal(size=(3, size, size, cin)).astype(np.float32))
     kernel = jnp.asarray(rng.normal(size=(k, k, cin, cout)).astype(np.float32))
-    pads = networks.conv_padding((size, size), k, s, padding)
+    pads = layers.conv_padding((size, size), k, s, padding)
     lax_pads = padding if isinstance(padding, str) else pads
 
     def ref(x, kernel):
         return jax.lax.conv_general_dilated(x, kernel, (s, s), lax_pads, dimension_numbers=("NHWC", "HWIO", "NHWC"))
 
     def mine(x, kernel):
-        return networks.conv2d(x, kernel, s, padding, "matmul", form)
+        return layers.conv2d(x, kernel, s, padding, "matmul", form)
 
     want, got = ref(x, kernel), mine(x, kernel)
     assert got.shape == want.shape
@@ -306,12 +306,12 @@ def test_conv2d_by_matrix_products_is_xla_convolution(k, s, padding, size, cin, 
     g_got = jax.grad(lambda x, w: jnp.sum(mine(x, w) * probe), (0, 1))(x, kernel)
     for a, b in zip(g_got, g_want):
         assert float(jnp.max(jnp.abs(a - b))) < 1e-5 * float(jnp.max(jnp.abs(b)))
-    auto = networks.conv2d(x, kernel, s, padding, "auto")
+    auto = layers.conv2d(x, kernel, s, padding, "auto")
     assert float(jnp.max(jnp.abs(auto - want))) < 1e-5 * scale
     with pytest.raises(ValueError, match="conv impl"):
-        networks.conv2d(x, kernel, s, padding, "fast")
+        layers.conv2d(x, kernel, s, padding, "fast")
     with pytest.raises(ValueError, match="conv form"):
-        networks.conv2d(x, kernel, s, padding, "matmul", "im2col")
+        layers.conv2d(x, kernel, s, padding, "matmul", "im2col")
 
 
 @pytest.mark.parametrize("impl,form", [("xla", None), ("matmul", "patches"), ("matmul", "shift")])
@@ -324,7 +324,7 @@ def test_conv2d_of_uint8_images_is_that_of_the_same_values_as_floats(k, s, paddi
     kernel = jnp.asarray(rng.normal(size=(k, k, 3, 6)).astype(np.float32)) / 255.0
 
     def out(kernel, x):
-        return networks.conv2d(x, kernel, s, padding, impl, form)
+        return layers.conv2d(x, kernel, s, padding, impl, form)
 
     want, got = out(kernel, image.astype(jnp.float32)), out(kernel, image)
     assert got.dtype == jnp.float32
@@ -416,7 +416,7 @@ def test_conv_transpose_against_numpy(k, s):
     rng = np.random.default_rng(k)
     x = rng.normal(size=(2, 3, 4, 5)).astype(np.float32)
     kernel = rng.normal(size=(k, k, 5, 6)).astype(np.float32)
-    y = np.asarray(networks.conv_transpose(jnp.asarray(x), jnp.asarray(kernel), s))
+    y = np.asarray(layers.conv_transpose(jnp.asarray(x), jnp.asarray(kernel), s))
     ref = np.zeros((2, 2 * s + k, 3 * s + k, 6))
     for i in range(3):
         for j in range(4):
@@ -433,8 +433,8 @@ def test_transposed_heads_window(offset, size):
     params = heads.init(jax.random.PRNGKey(0), x, ("depth",))
     out = np.asarray(heads.apply(params, x, ("depth", "segmentation"))["segmentation"])
     p = params["params"]
-    hidden = jax.nn.relu(networks.conv_transpose(x, p["segmentation_deconv1_kernel"], 2) + p["segmentation_deconv1_bias"])
-    full = np.asarray(networks.conv_transpose(hidden, p["segmentation_deconv2_kernel"], 2) + p["segmentation_deconv2_bias"])
+    hidden = jax.nn.relu(layers.conv_transpose(x, p["segmentation_deconv1_kernel"], 2) + p["segmentation_deconv1_bias"])
+    full = np.asarray(layers.conv_transpose(hidden, p["segmentation_deconv2_kernel"], 2) + p["segmentation_deconv2_bias"])
     assert full.shape[1] == 18
     rows = np.clip(np.arange(offset, offset + size), 0, 17)
     np.testing.assert_allclose(out, full[:, rows][:, :, rows], atol=1e-6)
@@ -542,10 +542,10 @@ def test_the_pytorch_reference_has_the_networks_layers(preset):
         model = torch_reference.TorchNetwork(cfg)
         net = networks.make_networks(cfg, ACTIONS)
         params = jax.eval_shape(net.init, jax.random.PRNGKey(0))
-        layers = ("conv1", "conv2", "conv3", "conv4", "dense", "vn")
+        names = ("conv1", "conv2", "conv3", "conv4", "dense", "vn")
         bias_difference = 0 if preset else 3 * sum(networks.VNHeads.HIDDEN.values())
         assert sum(p.numel() for p in model.parameters()) + bias_difference == sum(
-            networks.num_params(params["params"][k]) for k in layers)
+            networks.num_params(params["params"][k]) for k in names)
         feats, heads = model(*(torch.zeros((2, 3, 84, 84), dtype=torch.uint8),) * 2)
         want = _shapes(net, 84)
         assert tuple(feats.shape) == want["features"]

@@ -1,59 +1,11 @@
-"""The A2CAT-VN network (Flax linen).
+"""The A2CAT-VN network (Flax linen): the model on top of the layers of `layers.py`.
 
-Conv base: the observation and the target image each pass the same two strided conv
-layers (shared weights: conv1, conv2); the two feature maps are concatenated and pass
-conv3, conv4 and one dense layer, ReLU everywhere. These features, the one-hot previous
-action and the previous reward clipped to [-1, 1] feed the memory core: an LSTM, or
-(the frame-stack variant) a dense layer over the features of the last `stack` frames.
-Kernels, strides and padding of the four conv layers are `agent.conv_kernels`,
-`agent.conv_strides` and `agent.conv_padding` (default 8x8/4, 4x4/2, 3x3/1, 3x3/1,
-"same"; `configs/presets/authors_network.yaml` gives another stack). Heads:
-
-- actor (policy logits) and critic (value): affine maps of the core output;
-- pixel control: dense + stride-2 deconvolution from the core output to a
-  (image // cell)^2 grid of Q-values per action, dueling (V + A - mean A);
-- reward prediction: conv4 features of three consecutive frames -> 3 classes
-  (zero, positive, negative reward);
-- depth, observation segmentation, target segmentation: heads on conv4 at
-  1/`aux_downsize` of the image resolution, in one of two layouts
-  (`agent.vision_heads`, see `VNHeads`).
-
-`make_networks` wraps the Flax module in `Networks`, a set of pure functions of
-(params, inputs): the rest of the package never sees Flax. The network is split into
-functions so that the update can run the conv base on a whole rollout at once, the
-core step by step (`lax.scan`), and each head only where its loss has a non-zero
-weight. The target stream is a function of its own because targets are few: conv1,
-conv2 and conv3's part on the target's channels (`SplitConv`) run once per distinct
-target image, and each frame adds its target's result to conv3's part on its own
-channels (the same function as conv3 on the concatenated maps).
-
-Padding: with "valid" no layer pads (an n-pixel input gives (n - k) // s + 1 outputs).
-With "same" each layer gives ceil(n / s) outputs: conv2..conv4 pad as `lax`'s "SAME"
-(half the padding at the top/left, the rest at the bottom/right); conv1 pads k - s
-pixels at the top/left and the rest at the bottom/right, so that each output pixel's
-window ends where its own stride block ends (8x8/4: 4 pixels at the top/left).
-
-conv1 works on uint8 images, which stay uint8 through its padding and rearranging
-(its kernel is scaled by 1/255 instead of the image). With `space_to_depth` (conv1's kernel k a multiple of its
-stride s) it is computed as a (k/s)x(k/s)/1 conv on s x s pixel blocks (s*s*3
-channels) with the same kernel rearranged: the same function, which some backends run
-faster (docs/benchmarks.md).
-
-Convolutions (`agent.conv_impl`, `conv2d`): "xla" runs each as XLA's convolution;
-"matmul" as matrix products (a strided conv as a stride-1 conv on stride x stride
-pixel blocks, then either the kernel offsets' shifted inputs side by side times the
-kernel, or, for layers with few outputs, the input times every offset's kernel and
-the shifted results summed). Both compute the same function. "auto" (the default)
-takes, on XLA's CPU backend, per layer by its shape the one of the two that was faster
-for this network's layers (`MATMUL_MAX_CHANNELS`, docs/benchmarks.md); on other
-backends XLA's convolution.
-
-Initialisation (`agent.init`): "lecun" gives conv and dense kernels LeCun-normal values,
-the policy head orthogonal(0.01) and the LSTM flax's defaults; "uniform_fan_in" draws
-every conv, transposed-conv and dense kernel (the policy head's too) uniformly in
-+-1/sqrt(fan_in) (`fan_in_uniform`) and the LSTM's input kernels Glorot-uniform over its
-four gates together, its recurrent kernels orthogonal over the four gates together.
-Biases start at zero in both.
+`A2CATNet` is the conv base (shared observation / target stream, `SplitConv` conv3),
+the memory core (LSTM or frame stack) and the heads (actor-critic, pixel control,
+reward prediction, depth / segmentation in the layouts of `VNHeads` and
+`TransposedVNHeads`). `make_networks` wraps it in `Networks`, pure functions of
+(params, inputs), so the rest of the package never sees Flax. The design is described
+in docs/architecture.md, speed measurements are in docs/benchmarks.md.
 """
 from __future__ import annotations
 
@@ -66,199 +18,20 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from a2catvn_jax.config import AgentConfig, Config
+from a2catvn_jax.agent.layers import (Conv, Inits, Upsample2x, conv1_padding, conv2d, conv_transpose, depth_to_space,
+                                      on_blocks, same_pad_before)
+from a2catvn_jax.config import RP_FRAMES, AgentConfig, Config
 from a2catvn_jax.env.scenes.spec import NUM_CLASSES
 
 REWARD_CLASSES = 3  # zero, positive, negative
-RP_FRAMES = 3  # frames seen by the reward-prediction head
 VN_HEADS = ("depth", "segmentation", "target_segmentation")
 SHARED_LAYERS = ("conv1", "conv2", "conv3", "conv4")  # the conv base every head's gradient reaches
 _PC_CHANNELS = 32
 
 
-def depth_to_space(x, block: int):
-    """[N, H, W, b*b*C] -> [N, H*b, W*b, C], the inverse of `space_to_depth`."""
-    n, h, w, c = x.shape
-    c //= block * block
-    x = x.reshape(n, h, w, block, block, c).transpose(0, 1, 3, 2, 4, 5)
-    return x.reshape(n, h * block, w * block, c)
-
-
-def space_to_depth(x, block: int):
-    """[N, H, W, C] -> [N, H/b, W/b, b*b*C], channels ordered (row in block, col in block, C)."""
-    n, h, w, c = x.shape
-    x = x.reshape(n, h // block, block, w // block, block, c)
-    return x.transpose(0, 1, 3, 2, 4, 5).reshape(n, h // block, w // block, block * block * c)
-
-
-_DIMS = ("NHWC", "HWIO", "NHWC")
-
-
-def conv_padding(size: tuple, kernel: int, stride: int, padding) -> tuple:
-    """Explicit ((top, bottom), (left, right)) padding: "VALID", "SAME" (as `lax`: half
-    at the top/left, the rest at the bottom/right, for ceil(n / stride) outputs), or
-    already explicit."""
-    if not isinstance(padding, str):
-        return tuple(tuple(p) for p in padding)
-    if padding.upper() == "VALID":
-        return ((0, 0), (0, 0))
-    pads = []
-    for n in size:
-        total = max((-(-n // stride) - 1) * stride + kernel - n, 0)
-        pads.append((total // 2, total - total // 2))
-    return tuple(pads)
-
-
-# `conv2d`'s "auto" on the CPU, from timing this package's layers both ways in its two
-# networks at 32 and 84 px (docs/benchmarks.md): matrix products for layers whose input
-# has at most MATMUL_MAX_CHANNELS channels (counted on stride x stride pixel blocks for
-# a strided layer: conv1, conv3's two parts and conv4 (32 channels each), the heads'
-# upsampling, the depth output) and for strided layers on at least
-# MATMUL_STRIDED_CHANNELS channels (the authors' conv2 and conv3); XLA's convolution for
-# the others (conv2 on 16 channels, the 3x3 segmentation outputs on 64). The rule was
-# timed when conv3 still convolved 64 channels (observation and target side by side).
-MATMUL_MAX_CHANNELS = 48
-MATMUL_STRIDED_CHANNELS = 32
-
-
-def auto_impl(stride: int, channels: int) -> str:
-    """The implementation `conv2d`'s "auto" takes on the CPU for a layer of this stride on
-    this many input channels (see MATMUL_MAX_CHANNELS)."""
-    suits = stride * stride * channels <= MATMUL_MAX_CHANNELS or (stride > 1 and channels >= MATMUL_STRIDED_CHANNELS)
-    return "matmul" if suits else "xla"
-
-
-def conv1_padding(n: int, kernel: int, stride: int) -> tuple[int, int]:
-    """`Conv1`'s "same" padding of an n-pixel side: kernel - stride pixels before, and
-    after enough for ceil(n / stride) outputs."""
-    return kernel - stride, -(-n // stride) * stride - n
-
-
-def on_blocks(x, kernel, stride: int):
-    """A VALID stride-s convolution of x [N, H, W, C] by kernel [k, k, C, F] as a stride-1
-    one on s x s pixel blocks: (x's blocks [N, H', W', s*s*C], the kernel [m, m, s*s*C, F],
-    m = ceil(k / s)), the same function. The kernel is zero-padded to m*s taps; x is cropped
-    to the rows and columns the windows reach, or zero-padded up to them (they meet the
-    padded kernel's zero taps)."""
-    s, k = stride, kernel.shape[0]
-    n, h, w, c = x.shape
-    f, m = kernel.shape[-1], -(-k // stride)
-    if m * s > k:
-        kernel = jnp.pad(kernel, ((0, m * s - k), (0, m * s - k), (0, 0), (0, 0)))
-    kernel = kernel.reshape(m, s, m, s, c, f).transpose(0, 2, 1, 3, 4, 5).reshape(m, m, s * s * c, f)
-    hh, ww = s * ((h - k) // s + m), s * ((w - k) // s + m)
-    x = x[:, :hh, :ww]
-    if x.shape[1] < hh or x.shape[2] < ww:
-        x = jnp.pad(x, ((0, 0), (0, hh - x.shape[1]), (0, ww - x.shape[2]), (0, 0)))
-    return space_to_depth(x, s), kernel
-
-
-def conv2d(x, kernel, stride: int = 1, padding="VALID", impl: str = "auto", form=None):
-    """2-D convolution of x [N, H, W, C] (float, or integer: converted to the kernel's
-    dtype) by kernel [k, k, C, F] (square kernel and stride; padding as `conv_padding`)
-    -> [N, H', W', F], by XLA's convolution ("xla"),
-    by matrix products ("matmul", in the `form` "patches" or "shift", by default the one
-    the layer's shape suits; see the module docstring), or "auto": on the CPU the one of
-    the two that the layer's shape suits (see MATMUL_MAX_CHANNELS), XLA's convolution
-    on other backends."""
-    k = kernel.shape[0]
-    pads = conv_padding(x.shape[1:3], k, stride, padding)
-    if impl == "auto":
-        impl = auto_impl(stride, x.shape[-1]) if jax.default_backend() == "cpu" else "xla"
-    if impl == "xla":
-        x = x.astype(kernel.dtype)
-        return jax.lax.conv_general_dilated(x, kernel, (stride, stride), pads, dimension_numbers=_DIMS)
-    if impl != "matmul":
-        raise ValueError(f"conv impl must be 'auto', 'xla' or 'matmul', got {impl!r}")
-    if any(pads[0] + pads[1]):
-        x = jnp.pad(x, ((0, 0), pads[0], pads[1], (0, 0)))
-    n, h, w, _ = x.shape
-    oh, ow = (h - k) // stride + 1, (w - k) // stride + 1
-    if stride > 1:
-        x, kernel = on_blocks(x, kernel, stride)
-    k, c, f = kernel.shape[0], kernel.shape[2], kernel.shape[3]
-    x = x[:, : oh + k - 1, : ow + k - 1]
-    taps = [(i, j) for i in range(k) for j in range(k)]
-    if form is None:
-        form = "shift" if 4 * f <= c else "patches"
-    elif form not in ("shift", "patches"):
-        raise ValueError(f"conv form must be 'patches' or 'shift', got {form!r}")
-    # An integer input (uint8 images) is rearranged as it is, a quarter of float32's bytes,
-    # and converted just before the product.
-    if form == "shift":  # few outputs: every offset's outputs at every input pixel, shifted and summed
-        z = jnp.dot(x.astype(kernel.dtype), kernel.transpose(2, 0, 1, 3).reshape(c, k * k * f))
-        z = z.reshape(n, oh + k - 1, ow + k - 1, k * k, f)
-        return sum(z[:, i : i + oh, j : j + ow, i * k + j] for i, j in taps)
-    patches = jnp.concatenate([x[:, i : i + oh, j : j + ow] for i, j in taps], -1) if k > 1 else x
-    return jnp.dot(patches.astype(kernel.dtype), kernel.reshape(k * k * c, f))
-
-
-class Conv(nn.Module):
-    """`flax.linen.Conv` for square kernels and strides (the same parameters, "kernel"
-    [k, k, C, F] and "bias" [F]), computed by `conv2d` with implementation `impl`."""
-
-    features: int
-    kernel_size: int
-    stride: int = 1
-    padding: Any = "SAME"
-    kernel_init: Any = nn.initializers.lecun_normal()
-    impl: str = "auto"
-
-    @nn.compact
-    def __call__(self, x):
-        k = self.kernel_size
-        kernel = self.param("kernel", self.kernel_init, (k, k, x.shape[-1], self.features))
-        bias = self.param("bias", nn.initializers.zeros, (self.features,))
-        return conv2d(x, kernel, self.stride, self.padding, self.impl) + bias
-
-
-def fan_in_uniform(transposed: bool = False):
-    """Initialiser of kernels [..., in, out] uniform in +-1/sqrt(fan_in). fan_in is the
-    kernel area times the input channels; for a transposed conv (`transposed`), the
-    kernel area times the output channels, the count PyTorch's initialisers take for a
-    transposed convolution's weight."""
-
-    def init(key, shape, dtype=jnp.float32):
-        fan_in = math.prod(shape[:-2]) * (shape[-1] if transposed else shape[-2])
-        bound = 1.0 / math.sqrt(fan_in)
-        return jax.random.uniform(key, shape, dtype, -bound, bound)
-
-    return init
-
-
-def _gates_glorot_uniform(gates: int = 4):
-    """Initialiser of one gate's kernel [in, hidden] of an LSTM, Glorot-uniform over the
-    `gates` gates' kernels together ([in, gates * hidden])."""
-
-    def init(key, shape, dtype=jnp.float32):
-        bound = math.sqrt(6.0 / (shape[0] + gates * shape[1]))
-        return jax.random.uniform(key, shape, dtype, -bound, bound)
-
-    return init
-
-
-@dataclasses.dataclass(frozen=True)
-class Inits:
-    """The kernel initialisers of one `agent.init` choice."""
-
-    kernel: Any  # conv and dense kernels
-    transposed: Any  # transposed-conv kernels
-    policy: Any  # the policy head's kernel
-    lstm: dict  # OptimizedLSTMCell's initialiser arguments
-
-    @staticmethod
-    def of(name: str) -> "Inits":
-        if name == "lecun":
-            lecun = nn.initializers.lecun_normal()
-            return Inits(lecun, lecun, nn.initializers.orthogonal(0.01), {})
-        # The four gates' recurrent kernels, each orthogonal and scaled by 1/2, stacked
-        # into [4 * hidden, hidden] have orthonormal columns.
-        lstm = {"kernel_init": _gates_glorot_uniform(4), "recurrent_kernel_init": nn.initializers.orthogonal(0.5)}
-        return Inits(fan_in_uniform(), fan_in_uniform(transposed=True), fan_in_uniform(), lstm)
-
-
 class Conv1(nn.Module):
-    """conv1: kernel x kernel, stride `stride` on uint8 RGB; optional space-to-depth.
+    """conv1: kernel x kernel, stride `stride` on uint8 RGB; optional space-to-depth (the
+    same function computed on stride x stride pixel blocks, `layers.on_blocks`).
 
     padding "same": `kernel - stride` pixels at the top/left and enough at the
     bottom/right for ceil(H / stride) outputs; "valid": none."""
@@ -456,26 +229,6 @@ class A2CATNet(nn.Module):
         }
 
 
-class Upsample2x(nn.Module):
-    """A learned stride-2 upsampling ("deconvolution") as a sub-pixel convolution: a 2x2
-    conv to 4x the channels, each output pixel's 2x2 block taken from its own channels.
-
-    Like a 4x4 stride-2 transposed convolution, every output pixel is an affine map of a
-    2x2 input neighbourhood with weights that depend on its position in the block, at
-    the same cost; it runs several times faster than `nn.ConvTranspose` on XLA's CPU
-    backend (docs/benchmarks.md).
-    """
-
-    features: int
-    kernel_init: Any = nn.initializers.lecun_normal()
-    impl: str = "auto"
-
-    @nn.compact
-    def __call__(self, x):
-        y = Conv(4 * self.features, 2, 1, ((0, 1), (0, 1)), self.kernel_init, self.impl)(x)
-        return depth_to_space(y, 2)
-
-
 class VNHeads(nn.Module):
     """Depth / observation segmentation / target segmentation heads on conv4, layout
     "upsample" (`agent.vision_heads`).
@@ -521,33 +274,6 @@ class VNHeads(nn.Module):
         return out
 
 
-def conv_transpose(x, kernel, stride: int):
-    """Transposed convolution without padding of x [N, h, w, C] by kernel [k, k, C, F]
-    (k a multiple of the stride): input pixel l adds x[l] * kernel[t] to output pixel
-    stride * l + t (t < k), so the output is (h - 1) * stride + k pixels high.
-
-    Computed as one matrix product (every input pixel's k x k x F contribution) and an
-    overlap-add: with m = k / stride, output block j (pixels stride * j + r, r < stride)
-    sums the contributions of input pixels j - a (a < m) at taps stride * a + r. On XLA's
-    CPU backend this runs faster than a convolution of the stride-dilated input or a
-    sub-pixel convolution (docs/benchmarks.md)."""
-    k, s = kernel.shape[0], stride
-    m, c, f = k // s, kernel.shape[2], kernel.shape[3]
-    n, h, w, _ = x.shape
-    z = jnp.dot(x, kernel.transpose(2, 0, 1, 3).reshape(c, k * k * f)).reshape(n, h, w, m, s, m, s, f)
-    y = 0.0
-    for a in range(m):
-        for b in range(m):
-            y = y + jnp.pad(z[:, :, :, a, :, b], ((0, 0), (a, m - 1 - a), (b, m - 1 - b), (0, 0), (0, 0), (0, 0)))
-    return y.transpose(0, 1, 3, 2, 4, 5).reshape(n, (h + m - 1) * s, (w + m - 1) * s, f)
-
-
-def _same_pad_before(n: int, kernel: int, stride: int) -> int:
-    """Padding `lax`'s "SAME" puts before an n-pixel input."""
-    out = -(-n // stride)
-    return max((out - 1) * stride + kernel - n, 0) // 2
-
-
 def transposed_heads_offset(cfg: AgentConfig, image_size: int, aux_downsize: int) -> int:
     """Where the `TransposedVNHeads` output's window of auxiliary-target cells starts.
 
@@ -564,7 +290,7 @@ def transposed_heads_offset(cfg: AgentConfig, image_size: int, aux_downsize: int
         if cfg.conv_padding == "valid":
             before = 0
         else:
-            before = k - s if i == 0 else _same_pad_before(sizes[i], k, s)
+            before = k - s if i == 0 else same_pad_before(sizes[i], k, s)
         a, b = a + b * ((k - 1) / 2 - before), b * s
     for _ in range(2):  # the transposed convs' output pixel m at input position (m - 3/2) / 2
         a, b = a - b * 3 / 4, b / 2

@@ -9,7 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from a2catvn_jax.agent.networks import Conv1, auto_impl, conv2d, make_networks, num_params
+from a2catvn_jax.agent.layers import auto_impl, conv2d
+from a2catvn_jax.agent.networks import Conv1, make_networks, num_params
 from a2catvn_jax.agent.update import frames_per_update, make_update
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import NavEnv

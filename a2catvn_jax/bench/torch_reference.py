@@ -23,7 +23,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from a2catvn_jax.agent.networks import TransposedVNHeads, VNHeads, conv1_padding, conv_padding, transposed_heads_offset
+from a2catvn_jax.agent.layers import conv1_padding, conv_padding
+from a2catvn_jax.agent.networks import TransposedVNHeads, VNHeads, transposed_heads_offset
 from a2catvn_jax.env.scenes.spec import NUM_CLASSES
 
 
