@@ -9,8 +9,7 @@ import jax
 import pytest
 
 from a2catvn_jax.config import load_config
-from a2catvn_jax.env import NavEnv, mjx_render
-from a2catvn_jax.env import world as world_lib
+from a2catvn_jax.env import NavEnv, backends, mjx_render
 from a2catvn_jax.errors import UserError
 
 BASE = ["env.num_envs=4", "env.render.image_size=16", "env.render.culling=false", "env.scene.kind=room",
@@ -18,15 +17,15 @@ BASE = ["env.num_envs=4", "env.render.image_size=16", "env.render.culling=false"
 
 
 def test_auto_measures_both_backends_and_takes_the_faster(monkeypatch):
-    monkeypatch.setattr(world_lib, "_AUTO_CHOICES", {})
+    monkeypatch.setattr(backends, "RATES", backends.Memo("test"))
     env = NavEnv(load_config(None, BASE + ["env.render.backend=auto"]).env)
-    (rates,) = world_lib._AUTO_CHOICES.values()
+    (rates,) = backends.RATES.values()
     assert set(rates) == {"raycast", "mjx"} and all(r > 0 for r in rates.values())
     assert env.world.backend == max(rates, key=rates.get)
     assert env.world.backend_note.startswith(f"env.render.backend auto: {env.world.backend} (")
     assert "frames/s" in env.world.backend_note
     # A second world of the same camera, batch and layout reuses the measurement.
-    monkeypatch.setattr(world_lib.World, "_measure_backends", lambda *a, **k: pytest.fail("measured twice"))
+    monkeypatch.setattr(backends, "measure", lambda *a, **k: pytest.fail("measured twice"))
     again = NavEnv(load_config(None, BASE + ["env.render.backend=auto"]).env)
     assert again.world.backend == env.world.backend
 

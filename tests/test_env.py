@@ -24,7 +24,8 @@ from a2catvn_jax.config import ConfigError, load_config  # noqa: E402
 from a2catvn_jax.env import ACTION_SETS, NavEnv, State  # noqa: E402
 from a2catvn_jax.env.scenes.mjcf import compile_scene, geom_aabb  # noqa: E402
 from a2catvn_jax.env.scenes.spec import CLASS_ID, STRUCTURAL_CLASSES, half_extents  # noqa: E402
-from a2catvn_jax.env.world import BODY_MARGIN, SEGMENTATION_COLORS, World  # noqa: E402
+from a2catvn_jax.env.scenes.spec import SEGMENTATION_COLORS  # noqa: E402
+from a2catvn_jax.env.world import BODY_MARGIN, World  # noqa: E402
 
 B = 32  # agents per batch
 T = 200  # steps per random rollout

@@ -33,7 +33,7 @@ from a2catvn_jax.agent.types import Inputs
 from a2catvn_jax.config import load_config
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.env.scenes.spec import NUM_CLASSES
-from a2catvn_jax.env.world import SEGMENTATION_COLORS
+from a2catvn_jax.env.scenes.spec import SEGMENTATION_COLORS
 from tiny import TINY_LEARNER
 
 TINY = TINY_LEARNER + ["env.scene.num_scenes=1", "env.scene.grid=[1,1]"]

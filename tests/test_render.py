@@ -19,12 +19,14 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-import a2catvn_jax.env.render as render_lib
+import a2catvn_jax.env.raycast as render_lib
 from a2catvn_jax.env import camera, navgrid
 from a2catvn_jax.env.geometry import Geometry, pack, slots, take
-from a2catvn_jax.env.mjx_render import MjxRenderer, fields_of
+from a2catvn_jax.env.mjx_render import MjxRenderer
+from a2catvn_jax.env.mjx_world import fields_of
 from a2catvn_jax.env.mjx_world import MjxWorld, agent_pose
-from a2catvn_jax.env.render import CameraSpec, Frame, render, render_batch
+from a2catvn_jax.env.camera import CameraSpec, Frame
+from a2catvn_jax.env.raycast import render, render_batch
 from a2catvn_jax.env.scenes import (
     AGENT_RADIUS,
     CLASS_ID,

@@ -45,7 +45,7 @@ def act(networks: Networks, params: Params, target_feats, agent: AgentState, obs
     return carry, action.astype(jnp.int32), logits, value
 
 
-POLICIES = ("sample", "greedy", "random")
+ACTION_RULES = ("sample", "greedy", "random")  # how `act_as` turns the network's output into actions
 
 
 def act_as(policy: str, networks: Networks, params: Params, target_feats, agent: AgentState, obs: Observation, key):

@@ -1,4 +1,5 @@
-"""Pinhole camera of the agent: pose -> world-frame ray origin and per-pixel directions.
+"""Pinhole camera of the agent: pose -> world-frame ray origin and per-pixel directions,
+the camera's static settings (`CameraSpec`) and what every render backend returns (`Frame`).
 
 Conventions match MuJoCo's cameras: vertical field of view `fovy`, square pixels,
 image row 0 at the top. The camera has no roll: `yaw` turns it about world z
@@ -6,6 +7,9 @@ image row 0 at the top. The camera has no roll: `yaw` turns it about world z
 """
 
 from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -50,3 +54,59 @@ def column_ray_directions(yaw, tilt, height: int, width: int, fovy_deg: float):
         + y[None, :, None] * up[None, None, :]
     )
     return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraSpec:
+    """Static camera and renderer settings (they fix array shapes).
+
+    candidates: per tile, how many world-aligned boxes (walls, floors, most furniture)
+      the culled renderer tests; 0 disables culling (every ray tests every geom).
+    object_candidates: the same for each other geom family (oriented boxes,
+      ellipsoids, capsules), capped by `candidates`.
+    tile_columns: image columns per culling tile (reduced to a divisor of `width`).
+    chunk_frames: `render_batch` renders its frames this many at a time (a loop over
+      chunks keeps each chunk's images in cache); 0 picks about 2**18 pixels a chunk, at most 16 frames.
+    """
+
+    height: int
+    width: int
+    fovy: float = 60.0
+    candidates: int = 24
+    object_candidates: int = 2
+    tile_columns: int = 6
+    chunk_frames: int = 0
+
+    def __post_init__(self):
+        if self.height < 1 or self.width < 1:
+            raise ValueError(f"image size must be positive, got {self.height}x{self.width}")
+        if not 0.0 < self.fovy < 180.0:
+            raise ValueError(f"fovy must be in (0, 180) degrees, got {self.fovy}")
+        if min(self.candidates, self.object_candidates, self.chunk_frames) < 0 or self.tile_columns < 1:
+            raise ValueError(
+                "candidates, object_candidates and chunk_frames must be >= 0 and tile_columns >= 1, got "
+                f"{self.candidates}, {self.object_candidates}, {self.chunk_frames}, {self.tile_columns}"
+            )
+
+    @property
+    def tile(self) -> int:
+        return max(c for c in range(1, min(self.tile_columns, self.width) + 1) if self.width % c == 0)
+
+    def cap(self, family: str) -> int:
+        """Candidates per tile of a geom family."""
+        return self.candidates if family == "abox" else min(self.candidates, max(self.object_candidates, 1))
+
+    def chunk(self, batch: int) -> int:
+        n = self.chunk_frames or min(16, max(1, round(2**18 / (self.height * self.width))))
+        return max(1, min(n, batch))
+
+
+class Frame(NamedTuple):
+    """Rendered outputs, row-major images [..., H, W]."""
+
+    rgb: jnp.ndarray  # uint8 [..., H, W, 3]
+    depth: jnp.ndarray  # float32 metres along the ray, 0 where nothing is hit
+    geom: jnp.ndarray  # int32 MuJoCo geom id, -1 where nothing is hit
+    cls: jnp.ndarray  # int32 semantic class, 0 where nothing is hit
+    fallback: jnp.ndarray  # bool [...]: some tiles failed culling's check (render_batch
+    # re-rendered those against every geom; `render` with culling leaves them wrong)

@@ -10,7 +10,7 @@ refitted to them before each render, so one context serves a batch of houses, bo
 that move render where they are, and a world passed as data (held-out houses) renders
 exactly like the environment's own.
 
-The observation is the one the `raycast` backend gives (`render.Frame`): RGB, depth
+The observation is the one the `raycast` backend gives (`camera.Frame`): RGB, depth
 along the pixel's ray in metres (MuJoCo reports planar depth; it is converted), the
 geom hit and its semantic class. The hits are MuJoCo's, so depth and geom ids match
 `mujoco.mj_ray` and the `raycast` backend; the colours are MuJoCo's shading (its
@@ -29,8 +29,8 @@ from flax import struct
 from mujoco import mjx
 
 from a2catvn_jax.env import camera
-from a2catvn_jax.env.geometry import seen
-from a2catvn_jax.env.render import CameraSpec, Frame
+from a2catvn_jax.env.camera import CameraSpec, Frame
+from a2catvn_jax.env.mjx_world import MjxFields
 from a2catvn_jax.env.scenes.mjcf import AGENT_CAMERA
 from a2catvn_jax.errors import UserError
 
@@ -38,10 +38,9 @@ _DEPTH_SCALE = 2.0**20  # metres
 
 # Every geom group is rendered: a geom index that is padding in the scene the render
 # context is built from may be a real geom in another scene. Geoms that `mujoco.mj_ray`
-# does not see (padding, alpha 0) are moved out of reach instead (`fields_of`).
+# does not see (padding, alpha 0) are moved out of reach instead (`mjx_world.fields_of`).
 RENDER_GROUPS = tuple(range(mujoco.mjNGROUP))
-AWAY = (0.0, 0.0, -1e6)  # metres: where unseen geoms are put, shrunk to _AWAY_SIZE
-_AWAY_SIZE = 1e-6
+
 
 
 class BackendError(ValueError, UserError):
@@ -58,35 +57,6 @@ def unavailable() -> str:
     except Exception as e:  # installed but broken
         return "the warp-lang package does not import: " + " ".join(str(e).split())
     return ""
-
-
-@struct.dataclass
-class MjxFields:
-    """Per-scene model and pose arrays the `mjx` backend renders, leading axis S.
-
-    geom_size [S, G, 3], geom_rgba [S, G, 4], geom_xpos [S, G, 3] and geom_xmat
-    [S, G, 3, 3]: MuJoCo's own arrays of each scene's compiled model after forward
-    kinematics, with the geoms that `mujoco.mj_ray` does not see (layout padding,
-    alpha 0) shrunk and moved far below the scene. All scenes share one geom layout
-    (count and type of every geom)."""
-
-    geom_size: jnp.ndarray
-    geom_rgba: jnp.ndarray
-    geom_xpos: jnp.ndarray
-    geom_xmat: jnp.ndarray
-
-
-def fields_of(models: list[mujoco.MjModel]) -> MjxFields:
-    """The `MjxFields` of compiled scenes that share one geom layout."""
-    rows = []
-    for m in models:
-        d = mujoco.MjData(m)
-        mujoco.mj_forward(m, d)
-        size, pos = m.geom_size.copy(), d.geom_xpos.copy()
-        unseen = np.array([not seen(m, i) for i in range(m.ngeom)], bool)
-        size[unseen], pos[unseen] = _AWAY_SIZE, AWAY
-        rows.append((size, m.geom_rgba, pos, d.geom_xmat.reshape(-1, 3, 3)))
-    return MjxFields(*(jnp.asarray(np.stack(col), jnp.float32) for col in zip(*rows)))
 
 
 def agent_camera_model(model: mujoco.MjModel, spec: CameraSpec) -> tuple[mujoco.MjModel, int]:

@@ -14,7 +14,7 @@ occupancy grid, the geodesic distances and the shortest-path oracle know the sta
 geoms only.
 
 Geoms that `mujoco.mj_ray` does not see (layout padding, alpha 0) are parked far below
-the scene in the data's `geom_xpos` (`mjx_render.fields_of`), so no renderer hits them.
+the scene in the data's `geom_xpos` (`fields_of`), so no renderer hits them.
 """
 
 from __future__ import annotations
@@ -25,15 +25,46 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from flax import struct
 from mujoco import mjx
 
 from a2catvn_jax.env import camera
 from a2catvn_jax.env.geometry import seen, world_half_extents
-from a2catvn_jax.env.mjx_render import AWAY, MjxFields
 from a2catvn_jax.env.scenes.mjcf import AGENT_BODY, AGENT_CAMERA
 
 _HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
 FLOOR_CLEARANCE = 0.02  # metres: geoms entirely below this height never block the agent
+AWAY = (0.0, 0.0, -1e6)  # metres: where unseen geoms are put, shrunk to AWAY_SIZE
+AWAY_SIZE = 1e-6
+
+
+@struct.dataclass
+class MjxFields:
+    """Per-scene model and pose arrays the `mjx` backend renders, leading axis S.
+
+    geom_size [S, G, 3], geom_rgba [S, G, 4], geom_xpos [S, G, 3] and geom_xmat
+    [S, G, 3, 3]: MuJoCo's own arrays of each scene's compiled model after forward
+    kinematics, with the geoms that `mujoco.mj_ray` does not see (layout padding,
+    alpha 0) shrunk and moved far below the scene. All scenes share one geom layout
+    (count and type of every geom)."""
+
+    geom_size: jnp.ndarray
+    geom_rgba: jnp.ndarray
+    geom_xpos: jnp.ndarray
+    geom_xmat: jnp.ndarray
+
+
+def fields_of(models: list[mujoco.MjModel]) -> MjxFields:
+    """The `MjxFields` of compiled scenes that share one geom layout."""
+    rows = []
+    for m in models:
+        d = mujoco.MjData(m)
+        mujoco.mj_forward(m, d)
+        size, pos = m.geom_size.copy(), d.geom_xpos.copy()
+        unseen = np.array([not seen(m, i) for i in range(m.ngeom)], bool)
+        size[unseen], pos[unseen] = AWAY_SIZE, AWAY
+        rows.append((size, m.geom_rgba, pos, d.geom_xmat.reshape(-1, 3, 3)))
+    return MjxFields(*(jnp.asarray(np.stack(col), jnp.float32) for col in zip(*rows)))
 
 
 def moving_geoms(m: mujoco.MjModel) -> np.ndarray:

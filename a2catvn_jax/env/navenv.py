@@ -58,8 +58,10 @@ from flax import struct
 from mujoco import mjx
 
 from a2catvn_jax.config import EnvConfig
-from a2catvn_jax.env import camera, rects, render
-from a2catvn_jax.env.world import BODY_MARGIN, SEGMENTATION_COLORS, World, WorldArrays, cam_position, make_scenes
+from a2catvn_jax.env import camera, rects
+from a2catvn_jax.env.camera import Frame
+from a2catvn_jax.env.scenes.spec import SEGMENTATION_COLORS
+from a2catvn_jax.env.world import BODY_MARGIN, World, WorldArrays, cam_position, make_scenes
 
 # (forward, left, rotate, tilt) per action; metres and degrees.
 ACTION_SETS = {
@@ -82,7 +84,6 @@ ACTION_SETS = {
 }
 ACTION_SETS["no_tilt"] = ACTION_SETS["full"][:6]
 _CONTACT_GAP = 1e-3  # metres kept between the grown footprints and the agent's centre
-MIN_IMAGE_SIZE = 16
 
 
 @struct.dataclass
@@ -163,13 +164,7 @@ class NavEnv:
     """Target-driven visual navigation over a batch of scenes."""
 
     def __init__(self, cfg: EnvConfig, world: Optional[World] = None, seed_offset: int = 0):
-        if cfg.action_set not in ACTION_SETS:
-            raise ValueError(f"env.action_set: unknown action set {cfg.action_set!r}; use one of {sorted(ACTION_SETS)}")
-        if cfg.render.image_size < MIN_IMAGE_SIZE:
-            raise ValueError(
-                f"env.render.image_size: {cfg.render.image_size} is too small for the network "
-                f"(needs at least {MIN_IMAGE_SIZE})"
-            )
+        cfg.validate("env")  # the schema's checks (ConfigError): a tree built directly is not validated yet
         self.cfg = cfg
         self.world = world if world is not None else World(cfg, make_scenes(cfg, seed_offset), seed=cfg.scene.seed + seed_offset)
         self.num_envs = cfg.num_envs
@@ -292,12 +287,12 @@ class NavEnv:
         s = self._spec
         return cam_position(pose, self.cfg.camera_height), camera.ray_directions(pose[2], pose[3], s.height, s.width, s.fovy)
 
-    def render_pose(self, scene_index: int, pose) -> render.Frame:
+    def render_pose(self, scene_index: int, pose) -> Frame:
         """RGB, depth, geom ids and classes seen from pose (x, y, yaw, tilt) in a scene."""
         frame = self.render_poses(jnp.array([scene_index]), jnp.asarray(pose)[None])
         return jax.tree_util.tree_map(lambda a: a[0], frame)
 
-    def render_poses(self, scenes, poses, world: Optional[WorldArrays] = None, data=None) -> render.Frame:
+    def render_poses(self, scenes, poses, world: Optional[WorldArrays] = None, data=None) -> Frame:
         """Frames [N] seen from poses [N, 4] in scenes [N], with the scenes' bodies where
         `data` [N] has them (default: their reference configuration)."""
         return self._render(self._world(world), jnp.asarray(scenes, jnp.int32), jnp.asarray(poses, jnp.float32), data)
@@ -324,7 +319,7 @@ class NavEnv:
     def _world(self, world: Optional[WorldArrays]) -> WorldArrays:
         return self.world.arrays if world is None else world
 
-    def _render(self, w: WorldArrays, scene, pose, data=None) -> render.Frame:
+    def _render(self, w: WorldArrays, scene, pose, data=None) -> Frame:
         return self.world.render(w, scene, pose, data)
 
     def _scene_data(self, w: WorldArrays, keys, scene):
@@ -343,7 +338,7 @@ class NavEnv:
             return None
         return self.world.mjx.footprints(data, self.cfg.camera_height + BODY_MARGIN)
 
-    def _obs(self, w: WorldArrays, frame: render.Frame, info: Info) -> Observation:
+    def _obs(self, w: WorldArrays, frame: Frame, info: Info) -> Observation:
         s, g = info.scene, info.goal
         seg = frame.cls.astype(jnp.uint8)
         tseg = w.target_seg[s, g]
@@ -371,14 +366,14 @@ class NavEnv:
             ok &= jnp.abs(off) <= jnp.deg2rad(self.cfg.success_heading_deg)
         return ok
 
-    def in_view(self, w: WorldArrays, scene, goal, frame: render.Frame):
+    def in_view(self, w: WorldArrays, scene, goal, frame: Frame):
         """[N] bool: frames [N] (of agents in scenes [N] pursuing goals [N]) in which what
         shows the goal covers at least `view_fraction` of the image."""
         shows = w.goal_classes[scene[:, None, None], goal[:, None, None], frame.cls]
         shows |= w.goal_geoms[scene[:, None, None], goal[:, None, None], frame.geom + 1]
         return shows.mean((1, 2)) >= self.cfg.view_fraction
 
-    def _count_views(self, w: WorldArrays, info: Info, frame: render.Frame, keep):
+    def _count_views(self, w: WorldArrays, info: Info, frame: Frame, keep):
         """`info` with the view streak of the frames just rendered (continued where `keep`)."""
         if not self._seen:
             return info

@@ -1,15 +1,12 @@
-"""Host-side construction of a batch of scenes: MJCF, compiled MuJoCo models, render
-geometry, occupancy grids, goals and their target images, as device arrays.
-
-Everything the jitted environment needs is gathered here once; `World.arrays` is a
-pytree of fixed-shape arrays with a leading scene axis S.
+"""A batch of scenes built once on the host: MJCF, compiled MuJoCo models, render
+geometry, occupancy grids, goals (`goals`) and their target images, packed into
+`WorldArrays`, the pytree of fixed-shape arrays (leading scene axis S) the jitted
+environment reads; `World.render` draws frames with the backend `backends.choose` picked.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import time
 from typing import Optional
 
 import jax
@@ -20,16 +17,13 @@ from flax import struct
 
 from a2catvn_jax.config import EnvConfig
 from a2catvn_jax.env import geometry as geometry_lib
-from a2catvn_jax.env import mjx_render, mjx_world, navgrid, rects, render
+from a2catvn_jax.env import backends, goals as goals_lib, mjx_world, navgrid, raycast
+from a2catvn_jax.env.camera import CameraSpec, Frame
 from a2catvn_jax.env.scenes import generate, mjcf
 from a2catvn_jax.env.scenes.errors import SceneError
-from a2catvn_jax.env.scenes.mjcf import geom_aabb
-from a2catvn_jax.env.scenes.spec import CLASS_ID, NUM_CLASSES, ROOM_TARGET_CLASSES, STRUCTURAL_CLASSES, Scene, class_colors
+from a2catvn_jax.env.scenes.spec import CLASS_ID, NUM_CLASSES, Scene
 
-GOAL_KINDS = ("image", "room", "object")
 BODY_MARGIN = 0.1  # the agent's body reaches this far above its camera
-LOOK_RANGE = 1.5  # metres: the shortest-path oracle looks at a room goal's objects from this close
-PIECE_GAP = 0.05  # metres: geoms of one class this close to an object goal's geom are parts of the same object
 
 
 @struct.dataclass
@@ -54,7 +48,7 @@ class WorldArrays:
     """
 
     geometry: geometry_lib.Geometry
-    mjx: mjx_render.MjxFields
+    mjx: mjx_world.MjxFields
     obstacles: jnp.ndarray
     grid_origin: jnp.ndarray
     free: jnp.ndarray
@@ -92,24 +86,9 @@ class WorldArrays:
         return jax.tree_util.tree_map_with_path(pad, self, other)
 
 
-# env.render.backend "auto": frames/s of each backend, per device platform, camera, camera height,
-# batch size, scene count and layout (`World._choose_backend`).
-_AUTO_CHOICES: dict[tuple, dict[str, float]] = {}
-
 # Fill values of padded entries (by field name; the rest are 0 / False): geoms with id -1
 # are never hit, obstacles lie far away, padded cells are unreachable.
 _PAD_FILL = {"gid": -1, "obstacles": 1e6, "goal_dist": np.inf, "oracle_dist": np.inf}
-
-
-@dataclasses.dataclass
-class Goal:
-    success: np.ndarray  # bool [H, W]
-    pose: np.ndarray  # (x, y, yaw, tilt) of the target image camera
-    scene: int  # scene the target image is taken in
-    label: str
-    classes: tuple[str, ...] = ()  # semantic classes whose pixels show the goal (room goals)
-    geoms: tuple[str, ...] = ()  # names of the geoms whose pixels show the goal (object goals)
-    look: Optional[np.ndarray] = None  # footprints [K, 4] of what shows the goal; None: face `pose`'s heading
 
 
 def make_scenes(cfg: EnvConfig, seed_offset: int = 0) -> list[Scene]:
@@ -151,7 +130,7 @@ class World:
             self.models = [mjcf.compile_scene(x) for x in self.mjcf]
         geometry = geometry_lib.pack(self.models, [s.closed for s in scenes], [s.height for s in scenes],
                                      skip_unsupported=bool(self.native))
-        fields = mjx_render.fields_of(self.models)
+        fields = mjx_world.fields_of(self.models)
         try:
             self.mjx = mjx_world.MjxWorld(self.models[0], cfg.camera_height)
         except Exception as e:  # MJX refuses some of a model's settings (a plugin, an unsupported field)
@@ -165,16 +144,16 @@ class World:
             self._moving = (geometry_lib.slots(geometry_lib.take(geometry, 0), moving), moving)
         body = cfg.camera_height + BODY_MARGIN
         self.grids = [navgrid.build(s, cfg.grid_resolution, cfg.agent_radius, body) for s in scenes]
-        self.spec = render.CameraSpec(
+        self.spec = CameraSpec(
             cfg.render.image_size,
             cfg.render.image_size,
             cfg.render.fovy,
             candidates=cfg.render.column_candidates if cfg.render.culling else 0,
         )
-        self._mjx = None
-        self.backend, self.backend_note = self._choose_backend(cfg.render.backend, geometry, fields)
+        choice = backends.choose(self, cfg.render.backend, geometry, fields)
+        self.backend, self.backend_note, self._mjx = choice.name, choice.note, choice.renderer
         rng = np.random.default_rng(seed)
-        self.goals = [self._goals(k, rng) for k in range(len(scenes))]
+        self.goals = [goals_lib.draw_goals(cfg, scenes, self.grids, self.models, k, rng) for k in range(len(scenes))]
         self.arrays = self._arrays(geometry, fields)
 
     # -- rendering --------------------------------------------------------------------
@@ -182,7 +161,7 @@ class World:
     def data(self, arrays: WorldArrays, scene, pose, qpos=None):
         """`mjx.Data` [N] of agents at poses [N, 4] in scenes [N] of `arrays`, with joint
         positions qpos [N, nq] (default: the model's reference configuration)."""
-        return self._data(arrays.mjx, scene, pose, qpos)
+        return self.fields_data(arrays.mjx, scene, pose, qpos)
 
     def scene_data(self, arrays: WorldArrays, scene, qpos=None):
         """`mjx.Data` [N] of scenes [N] of `arrays` with joint positions qpos [N, nq]
@@ -196,22 +175,24 @@ class World:
     def _scene_data(self, fields, scene, qpos=None):
         return jax.vmap(self.mjx.data, in_axes=(None, 0, 0))(fields, scene, qpos)
 
-    def _data(self, fields, scene, pose, qpos=None):
+    def fields_data(self, fields: mjx_world.MjxFields, scene, pose, qpos=None):
+        """`data` of the scenes' `MjxFields` rather than a world's arrays."""
         return self.place_agent(self._scene_data(fields, scene, qpos), pose)
 
-    def render(self, arrays: WorldArrays, scene, pose, data=None) -> render.Frame:
+    def render(self, arrays: WorldArrays, scene, pose, data=None) -> Frame:
         """Frames [N] of agents at poses [N, 4] (x, y, yaw, tilt) in scenes [N] of `arrays`
         (this world's, or another's of the same layout), with this world's backend. The
         camera and the geoms are where `data` [N] (`World.data`; default: the scenes in
         their reference configuration) has them."""
-        return self._render(self.backend, arrays.geometry, arrays.mjx, scene, pose, data)
+        return self.render_with(self.backend, self._mjx, arrays.geometry, arrays.mjx, scene, pose, data)
 
-    def _render(self, backend: str, geometry, fields, scene, pose, data=None) -> render.Frame:
+    def render_with(self, backend: str, renderer, geometry, fields, scene, pose, data=None) -> Frame:
+        """`render` with a given backend (and the mjx backend's `renderer`) on geometry and fields."""
         if data is None:
-            data = self._data(fields, scene, pose)
+            data = self.fields_data(fields, scene, pose)
         if backend == "mjx":
             cam_pos, cam_mat = self.mjx.camera_pose(data)
-            return self._mjx.render(fields, geometry.cls, scene, cam_pos, cam_mat, data.geom_xpos, data.geom_xmat)
+            return renderer.render(fields, geometry.cls, scene, cam_pos, cam_mat, data.geom_xpos, data.geom_xmat)
         # The ray caster's geometry holds the static geoms' poses (the same as the data's);
         # the moving geoms are placed from the data.
         moving = None
@@ -219,151 +200,7 @@ class World:
             where, gids = self._moving
             moving = (where, gids, data.geom_xpos[:, gids], data.geom_xmat[:, gids])
         cam_pos, _ = self.mjx.camera_pose(data)
-        return render.render_batch(geometry, scene, cam_pos, pose[:, 2], pose[:, 3], self.spec, moving)
-
-    def _choose_backend(self, backend: str, geometry, fields) -> tuple[str, str]:
-        """(backend in use, a line saying why when `backend` is "auto"). `auto` is measured
-        in each process (once per device, camera, batch size, scene count and layout)."""
-        if self.native:
-            name, kind = self.native[0]
-            what = f"{self.scenes[0].name}: geom {name!r} has type {kind}, which only the mjx backend renders"
-            if backend == "raycast":
-                raise SceneError(f"{what}: set env.render.backend=mjx (or auto)")
-            why = mjx_render.unavailable()
-            if why:
-                raise SceneError(f"{what}, and the mjx backend cannot run here: {why}")
-            try:
-                self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
-            except Exception as e:  # MJX refuses some of a model's settings (a solver, a plugin)
-                raise SceneError(f"{self.scenes[0].name}: the mjx backend cannot use this model: "
-                                 f"{type(e).__name__}: {' '.join(str(e).split())}") from e
-            return "mjx", "" if backend == "mjx" else f"env.render.backend auto: mjx ({what})"
-        if backend == "raycast":
-            return backend, ""
-        if backend == "mjx":
-            self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
-            return backend, ""
-        why = mjx_render.unavailable()
-        if why:
-            return "raycast", f"env.render.backend auto: raycast (the mjx backend cannot run here: {why})"
-        key = (jax.default_backend(), self.spec, self.cfg.camera_height, self.cfg.num_envs, len(self.scenes),
-               tuple(sorted(self.layout.items())))
-        if key not in _AUTO_CHOICES:
-            try:
-                self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
-                _AUTO_CHOICES[key] = self._measure_backends(geometry, fields)
-            except Exception as e:  # Warp could not build or run its kernels here: keep the ray caster
-                self._mjx = None
-                return "raycast", f"env.render.backend auto: raycast (the mjx backend failed: {' '.join(str(e).split())})"
-        rates = _AUTO_CHOICES[key]
-        best = max(rates, key=rates.get)
-        if best == "mjx" and self._mjx is None:
-            self._mjx = mjx_render.MjxRenderer(self.models[0], self.spec)
-        elif best == "raycast":
-            self._mjx = None  # its render contexts are not kept
-        return best, (f"env.render.backend auto: {best} ("
-                      + ", ".join(f"{b} {r:,.0f} frames/s" for b, r in rates.items())
-                      + f" at {self.cfg.num_envs} frames a batch on {jax.default_backend()})")
-
-    def _measure_backends(self, geometry, fields, repeats: int = 3) -> dict[str, float]:
-        """Frames/s of each backend rendering B = env.num_envs random poses (best of `repeats`)."""
-        n = self.cfg.num_envs
-        rng = np.random.default_rng(0)
-        scene = jnp.asarray(np.arange(n) % len(self.scenes), jnp.int32)
-        pose = jnp.asarray(np.stack([self._random_free_pose(int(k), rng) for k in np.asarray(scene)]), jnp.float32)
-        rates = {}
-        data = jax.jit(self._data)(fields, scene, pose)
-        for backend in ("raycast", "mjx"):
-            fn = jax.jit(functools.partial(self._render, backend, geometry, fields))
-            jax.block_until_ready(fn(scene, pose, data))
-            best = np.inf
-            for _ in range(repeats):
-                t0 = time.perf_counter()
-                jax.block_until_ready(fn(scene, pose, data))
-                best = min(best, time.perf_counter() - t0)
-            rates[backend] = n / best
-        return rates
-
-    # -- goals ------------------------------------------------------------------------
-
-    def _random_free_pose(self, k: int, rng, mask: Optional[np.ndarray] = None) -> np.ndarray:
-        g = self.grids[k]
-        cells = np.flatnonzero(g.free & (mask if mask is not None else True))
-        if cells.size == 0:
-            cells = np.flatnonzero(g.free)
-        c = g.centres().reshape(-1, 2)[rng.choice(cells)]
-        return np.array([c[0], c[1], rng.uniform(-np.pi, np.pi), 0.0])
-
-    def _goals(self, k: int, rng) -> list[Goal]:
-        cfg, scene, grid = self.cfg, self.scenes[k], self.grids[k]
-        centres = grid.centres()
-        goals = []
-        for _ in range(cfg.goals_per_scene):
-            if cfg.goal == "image":
-                pose = self._random_free_pose(k, rng)
-                near = np.hypot(*(centres - pose[:2]).transpose(2, 0, 1)) <= cfg.success_distance
-                goals.append(Goal(near, pose, k, "image"))
-            elif cfg.goal == "room":
-                if not scene.rooms:
-                    raise SceneError(f"scene {scene.name!r} has no rooms: room-type goals need houses")
-                candidates = scene.rooms
-                if cfg.view_fraction > 0:  # only rooms with something that shows their type
-                    candidates = [r for r in scene.rooms if _room_pieces(scene, r)]
-                    if not candidates:
-                        raise SceneError(f"scene {scene.name!r} has no room with objects that show its type "
-                                         f"(room-type goals with env.view_fraction > 0)")
-                rtype = candidates[rng.integers(len(candidates))].type
-                rooms = [i for i, r in enumerate(scene.rooms) if r.type == rtype]
-                success = np.isin(grid.room, rooms)
-                # The target image is taken in another room of that type: in another
-                # scene of the batch if one has such a room, else in this one.
-                others = [
-                    (j, i)
-                    for j, s in enumerate(self.scenes)
-                    for i, r in enumerate(s.rooms)
-                    if r.type == rtype and j != k
-                ]
-                if others:
-                    j, i = others[rng.integers(len(others))]
-                else:
-                    j, i = k, rooms[rng.integers(len(rooms))]
-                pose = self._random_free_pose(j, rng, self.grids[j].room == i)
-                look = [_footprint(g) for r in rooms for g in _room_pieces(scene, scene.rooms[r])]
-                goals.append(Goal(success, pose, j, rtype, classes=ROOM_TARGET_CLASSES.get(rtype, ()),
-                                  look=np.array(look).reshape(-1, 4)))
-            else:
-                goals.append(self._object_goal(k, rng))
-        return goals
-
-    def _object_goal(self, k: int, rng) -> Goal:
-        cfg, scene, grid = self.cfg, self.scenes[k], self.grids[k]
-        objs = [g for g in scene.geoms if g.cls not in STRUCTURAL_CLASSES and g.cls != "rug"]
-        if not objs:
-            raise SceneError(f"scene {scene.name!r} has no objects for object goals")
-        model = self.models[k]
-        data = mujoco.MjData(model)
-        mujoco.mj_forward(model, data)
-        centres = grid.centres()
-        for _ in range(50):
-            obj = objs[rng.integers(len(objs))]
-            lo, hi = geom_aabb(obj)
-            dist = rects.distance(centres, np.array([lo[0], lo[1], hi[0], hi[1]]))
-            success = dist <= cfg.object_distance
-            view = grid.free & (dist >= 0.6) & (dist <= 2.0)
-            target = (lo + hi) / 2
-            for c in rng.permutation(np.argwhere(view))[:20]:
-                eye = np.array([*centres[c[0], c[1]], cfg.camera_height])
-                vec = target - eye
-                gid = np.zeros(1, np.int32)
-                mujoco.mj_ray(model, data, eye, vec / np.linalg.norm(vec), None, 1, -1, gid)
-                name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, int(gid[0])) if gid[0] >= 0 else None
-                if name == obj.name and success.any() and (success & grid.free).any():
-                    yaw = np.arctan2(vec[1], vec[0])
-                    tilt = np.clip(np.arctan2(vec[2], np.hypot(vec[0], vec[1])), -0.5, 0.5)
-                    parts = [g for g in objs if g.cls == obj.cls and _gap(geom_aabb(g), (lo, hi)) <= PIECE_GAP]
-                    return Goal(success, np.array([eye[0], eye[1], yaw, tilt]), k, obj.name,
-                                geoms=tuple(g.name for g in parts), look=np.array([_footprint(g) for g in parts]))
-        raise SceneError(f"scene {scene.name!r}: found no visible object for an object goal")
+        return raycast.render_batch(geometry, scene, cam_pos, pose[:, 2], pose[:, 3], self.spec, moving)
 
     # -- arrays ---------------------------------------------------------------------
 
@@ -396,7 +233,7 @@ class World:
                 goal_classes[k, t, [CLASS_ID[c] for c in goal.classes]] = True
                 for name in goal.geoms:
                     goal_geoms[k, t, mujoco.mj_name2id(self.models[k], mujoco.mjtObj.mjOBJ_GEOM, name) + 1] = True
-                region, yaw = self._oracle_target(grid, goal, d)
+                region, yaw = goals_lib.oracle_target(self.cfg, grid, goal, d)
                 oracle_dist[k, t] = pad(region.astype(np.float32), np.inf)
                 oracle_yaw[k, t] = pad(yaw.astype(np.float32), 0.0)
         diameter = np.array([navgrid.diameter(g) for g in self.grids], np.float32)
@@ -406,7 +243,7 @@ class World:
             obstacles[k, : len(g.obstacles)] = g.obstacles
         pose = np.array([[g.pose for g in goals] for goals in self.goals], np.float32)
         tscene = np.array([[g.scene for g in goals] for goals in self.goals], np.int32)
-        flat = render_in_chunks(functools.partial(self._render, self.backend, geometry, fields), tscene.reshape(-1),
+        flat = render_in_chunks(functools.partial(self.render_with, self.backend, self._mjx, geometry, fields), tscene.reshape(-1),
                                 pose.reshape(-1, 4))
         h = w = self.cfg.render.image_size
         return WorldArrays(
@@ -430,39 +267,6 @@ class World:
             oracle_yaw=jnp.asarray(oracle_yaw),
         )
 
-    def _oracle_target(self, grid: navgrid.NavGrid, goal: Goal, goal_dist: np.ndarray):
-        """(geodesic distance [H, W] to where the oracle heads, heading [H, W] it turns to
-        there). Goals that must be seen: the cells of the goal region within `LOOK_RANGE`
-        of what shows the goal (the region itself when no such cell is free), facing the
-        nearest of those objects; other goals: the goal region, facing the target
-        image's heading."""
-        seen = self.cfg.view_fraction > 0 and self.cfg.goal in ("room", "object")
-        if not seen or goal.look is None or len(goal.look) == 0:
-            return goal_dist, np.full(grid.shape, goal.pose[2])
-        centres = grid.centres()
-        dist = rects.distance(centres[..., None, :], goal.look)  # [H, W, K]
-        region = goal.success & grid.free & (dist.min(-1) <= LOOK_RANGE)
-        d = navgrid.geodesic(grid, region) if region.any() else goal_dist
-        nearest = goal.look[dist.argmin(-1)]  # [H, W, 4]
-        to = (nearest[..., :2] + nearest[..., 2:]) / 2 - centres
-        return d, np.arctan2(to[..., 1], to[..., 0])
-
-
-def _footprint(g) -> np.ndarray:
-    lo, hi = geom_aabb(g)
-    return np.array([lo[0], lo[1], hi[0], hi[1]])
-
-
-def _gap(a, b) -> float:
-    """The largest per-axis gap between two AABBs (lo, hi): <= 0 where they overlap."""
-    return float(np.max(np.maximum(a[0] - b[1], b[0] - a[1])))
-
-
-def _room_pieces(scene: Scene, room) -> list:
-    """The geoms that show a room's type (`ROOM_TARGET_CLASSES`) whose centre lies in it."""
-    classes = ROOM_TARGET_CLASSES.get(room.type, ())
-    x0, y0, x1, y1 = room.rect
-    return [g for g in scene.geoms if g.cls in classes and x0 <= g.pos[0] < x1 and y0 <= g.pos[1] < y1]
 
 
 def share_shapes(worlds: list[World]) -> None:
@@ -496,5 +300,3 @@ def cam_position(pose, camera_height: float):
     """World camera position [..., 3] of agent poses [..., 4]."""
     return jnp.concatenate([pose[..., :2], jnp.full(pose.shape[:-1] + (1,), camera_height, pose.dtype)], -1)
 
-
-SEGMENTATION_COLORS = class_colors()

@@ -12,7 +12,6 @@ configuration without any run.
 
 from __future__ import annotations
 
-import collections
 import json
 import math
 import time
@@ -27,6 +26,7 @@ from a2catvn_jax.agent.networks import Networks
 from a2catvn_jax.config import Config
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.env.oracle import oracle_actions
+from a2catvn_jax.memo import Memo
 from a2catvn_jax.run.restore import HOUSES, Restored, check_houses, locate, make_env, make_envs
 from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
 
@@ -42,18 +42,7 @@ EPISODE_FIELDS = {  # per-episode list -> environment metric
 }
 
 
-_COMPILED: collections.OrderedDict = collections.OrderedDict()  # the jitted functions last used, by what fixes them
-_COMPILED_KEEP = 8
-
-
-def _compiled(key, make):
-    """The jitted function cached under `key`, made by `make()` the first time."""
-    if key not in _COMPILED:
-        _COMPILED[key] = make()
-        if len(_COMPILED) > _COMPILED_KEEP:
-            _COMPILED.popitem(last=False)
-    _COMPILED.move_to_end(key)
-    return _COMPILED[key]
+COMPILED = Memo("jitted evaluation functions, by what fixes them", keep=8)
 
 
 def _chunk_fn(env: NavEnv, networks: Optional[Networks], steps: int, policy: str, video: bool):
@@ -85,7 +74,7 @@ def _chunk_fn(env: NavEnv, networks: Optional[Networks], steps: int, policy: str
         return env_state, agent, key, out
 
     key = ("chunk", env.cfg, None if policy in BASELINES else networks, steps, policy, video)
-    return _compiled(key, lambda: jax.jit(run))
+    return COMPILED.get(key, lambda: jax.jit(run))
 
 
 def _check(episodes: int, policy: str, video, video_episodes: int) -> None:
@@ -187,13 +176,13 @@ def run_episodes(restored: Optional[Restored], env: NavEnv, houses: str, episode
     chunk = min(MAX_CHUNK, per_env * env.cfg.max_episode_steps)
     run = _chunk_fn(env, networks, chunk, policy, video is not None)
     k_reset, key = jax.random.split(jax.random.PRNGKey(seed))
-    reset = _compiled(("reset", env.cfg), lambda: jax.jit(lambda k, tau, w: env.reset(k, complexity=tau, world=w)))
+    reset = COMPILED.get(("reset", env.cfg), lambda: jax.jit(lambda k, tau, w: env.reset(k, complexity=tau, world=w)))
     env_state = reset(k_reset, env.cfg.complexity, world)
     if policy in BASELINES:
         agent = target_feats = None
     else:
         agent = initial_agent(networks, B)
-        target_stream = _compiled(("targets", networks), lambda: jax.jit(networks.target_stream))
+        target_stream = COMPILED.get(("targets", networks), lambda: jax.jit(networks.target_stream))
         target_feats = target_stream(params, env.target_images(world)["rgb"])
 
     found: list[list[dict]] = [[] for _ in range(B)]

@@ -22,12 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 from matplotlib.figure import Figure  # no pyplot: works with any backend; notebooks display it
 
-from a2catvn_jax.agent.acting import POLICIES, act_as, initial_agent, observe
+from a2catvn_jax.agent.acting import ACTION_RULES, act_as, initial_agent, observe
 from a2catvn_jax.agent.losses import DEPTH_SCALE, downsize_mean
 from a2catvn_jax.agent.networks import VN_HEADS, Networks, make_networks
 from a2catvn_jax.agent.update import make_grad_norms, make_update
 from a2catvn_jax.env import NavEnv
-from a2catvn_jax.env.world import SEGMENTATION_COLORS
+from a2catvn_jax.env.scenes.spec import SEGMENTATION_COLORS
 from a2catvn_jax.run.checkpoint import Checkpointer
 from a2catvn_jax.run.restore import locate, make_env
 from a2catvn_jax.run.topdown import TopdownMap
@@ -103,7 +103,7 @@ def record(agent: Agent, steps: int, *, seed: int = 0, policy: str = "sample", e
     segmentation_pred and target_segmentation_pred (RGB in [0, 1])."""
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    if policy not in POLICIES:
+    if policy not in ACTION_RULES:
         raise ValueError(f"policy must be sample, greedy or random, got {policy!r}")
     env, networks = agent.env, agent.networks
     if not 0 <= env_index < env.num_envs:

@@ -182,3 +182,6 @@ class Scene:
     height: float
     closed: bool = False
     source: Optional[tuple[str, str]] = None
+
+
+SEGMENTATION_COLORS = class_colors()  # the paper's colour of each class, what the segmentation heads regress

@@ -8,8 +8,8 @@
 #   3. the profile of one update at B 1024.
 # Results go to OUT (default: gpu_results/) as JSON and text, with the device's name.
 #
-#   benchmarks/gpu.sh [OUT]
-#   SMALL=1 benchmarks/gpu.sh /tmp/gpu   # the same steps at tiny sizes (checks the script on a CPU)
+#   scripts/gpu.sh [OUT]
+#   SMALL=1 scripts/gpu.sh /tmp/gpu   # the same steps at tiny sizes (checks the script on a CPU)
 set -u
 out=${1:-gpu_results}
 mkdir -p "$out"

@@ -2,7 +2,7 @@
 data work alone (the new episodes' data, the select between old and new, the agent's
 pose written in), both jitted, timed in turns in one process.
 
-    python benchmarks/world_model_cost.py [--config configs/image_goals_cpu.yaml] [--batch 256]
+    python -m a2catvn_jax.bench.world_model_cost [--config configs/image_goals_cpu.yaml] [--batch 256]
 """
 
 import argparse

@@ -5,8 +5,8 @@
 # `python -m a2catvn_jax.experiments NAME --seeds S --train-only LABEL` stores it; a run cut
 # off by the deadline leaves nothing there. The log of every process is in LOGS.
 #
-#   benchmarks/parallel_runs.sh NAME STORE LOGS JOBS DEADLINE SEED:LABEL [SEED:LABEL ...]
-#   benchmarks/parallel_runs.sh sight /tmp/store /tmp/logs 4 480 2:A2CAT-VN "2:blind A2CAT-VN"
+#   scripts/parallel_runs.sh NAME STORE LOGS JOBS DEADLINE SEED:LABEL [SEED:LABEL ...]
+#   scripts/parallel_runs.sh sight /tmp/store /tmp/logs 4 480 2:A2CAT-VN "2:blind A2CAT-VN"
 #
 # On one GPU use JOBS=1: one quickstart run alone trains at about 25k frames/s on an H200,
 # while six at once took 3 minutes to compile and then shared the GPU so badly that none

@@ -3,7 +3,7 @@ environment's random-action rollout and the whole training update, as they are a
 both switched off (the general box test for every camera, and a running count with an
 argmax over the whole grid for the starts), each jitted, timed in turns in one process.
 
-    python benchmarks/level_trace_cost.py [--config configs/house_rooms_cpu.yaml] [--rounds 6]
+    python -m a2catvn_jax.bench.level_trace_cost [--config configs/house_rooms_cpu.yaml] [--rounds 6]
 
 The two programs compute the same function: the script checks that one update of each
 from the same state gives the same losses to float rounding.
@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import a2catvn_jax.env.navenv as navenv
-import a2catvn_jax.env.render as render
+import a2catvn_jax.env.raycast as render
 from a2catvn_jax.agent.networks import make_networks
 from a2catvn_jax.agent.update import frames_per_update, make_update
 from a2catvn_jax.bench.throughput import random_steps
