@@ -29,7 +29,7 @@ for `configs/quickstart.yaml` and `configs/paper.yaml` (Table I: 16 environments
 pixels, with compile time and the share of the time spent in the environment (a
 rollout of random actions timed alone). With `--processes N ...`: for each N, N copies
 of that benchmark at once, each a process pinned to its share of the CPU cores
-(`run/workers.py`, what `experiments --jobs N` does), and the frames/s
+(`study/workers.py`, what `experiments --jobs N` does), and the frames/s
 of all of them together: whether independent runs finish sooner side by side. With
 `--batch-sizes B ...`: each configuration at each number of environments B, one process
 per size, with the memory it needs: the training state (parameters, optimiser,
@@ -85,7 +85,7 @@ from a2catvn_jax.bench.throughput import (
 )
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import mjx_render
-from a2catvn_jax.run import workers
+from a2catvn_jax.study import workers
 
 CONFIG_NAMES = sorted(p.stem for p in CONFIGS.glob("*.yaml") if p.stem != "default")
 

@@ -1,7 +1,7 @@
 """Comparisons of the method's variants: train with several seeds, evaluate, store, plot, tabulate.
 
     python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1 2 3 4 | --stored-seeds | --all-stored]
-        [--episodes 100] [--threshold T] [--root runs/experiments] [--store docs/experiments/runs]
+        [--episodes 100] [--threshold T] [--root runs/experiments] [--store results]
         [--docs docs] [--skip-missing] [--jobs N] [--set KEY=VALUE ...]
     python -m a2catvn_jax.experiments --list [NAME ...] [--scale cpu|paper] [--store DIR]
     python -m a2catvn_jax.experiments --compare EXPERIMENT:LABEL EXPERIMENT:LABEL [...] [--scale cpu|paper]
@@ -30,35 +30,34 @@ runs.
 Each experiment names a configuration of `configs/`: `NAME_cpu.yaml` at `--scale cpu`
 (minutes per run on a laptop CPU), `NAME.yaml` at `--scale paper` (the paper's sizes,
 for a GPU). Every variant is trained once per seed (`seed=S`; the houses stay the same)
-under a name from the hash of its configuration, so a variant shared by two
-experiments (e.g. A2CAT-VN in `aux` and `ablations`) is trained once. Pre-trained
-variants first run `pretrain` with the same seed. Each run is evaluated with the
-sampled policy in its training houses, with new targets in them and in held-out houses
-(`evaluate --houses`); a uniformly random policy and the shortest-path oracle, which
-need no training, are evaluated in the same houses.
+under its run key, a hash of the configuration's values that differ from the defaults
+(`study.store.run_key`: a configuration key added with its default renames no run), so a
+variant shared by two experiments (e.g. A2CAT-VN in `aux` and `ablations`) is trained
+once. Pre-trained variants first run `pretrain` with the same seed. Each run is
+evaluated with the sampled policy in its training houses, with new targets in them and
+in held-out houses (`evaluate --houses`); a uniformly random policy and the
+shortest-path oracle, which need no training, are evaluated in the same houses.
 
-Runs as data: a finished, evaluated run is copied to the store, `STORE/SCALE/CONFIG/
-RUN_KEY/seed_N/` (config.yaml, variant.json, metrics.jsonl with the columns the
-curves use, the evaluation JSONs, experiment_time.json and done.json: updates, frames,
-date, machine, git commit); checkpoints and TensorBoard files stay in ROOT. Commit the
-store: a stored run is never trained again, and the curves and tables are made from
-the store, so on a fresh clone `python -m a2catvn_jax.experiments NAME` re-plots and
-re-tabulates without training, and more `--seeds` train only the missing ones.
-`--stored-seeds` uses the seeds stored for every variant and trains nothing;
+Runs as data: a finished, evaluated run is copied to the store (default `results/`),
+`STORE/SCALE/CONFIG/RUN_KEY/seed_N/` (config.yaml, variant.json, metrics.jsonl with the
+columns the curves use, the evaluation JSONs, experiment_time.json and done.json:
+updates, frames, date, machine, git commit); checkpoints and TensorBoard files stay in
+ROOT. Commit the store: a stored run is never trained again, and the curves and tables
+are made from the store, so on a fresh clone `python -m a2catvn_jax.experiments NAME`
+re-plots and re-tabulates without training, and more `--seeds` train only the missing
+ones. `--stored-seeds` uses the seeds stored for every variant and trains nothing;
 `--all-stored` reports every stored run, however many seeds each variant has (a look at
 an experiment part-way; a variant with none stored yet is left out and named), and
-trains nothing. `--jobs N`
-trains N runs at once, each in its own process pinned to its share of the CPU cores
-(its log in `train.log` in the run's directory under ROOT): on a CPU with few cores a
-small run leaves cores idle, so runs side by side finish sooner in all
-(docs/benchmarks.md); on one GPU keep 1. An
-evaluation a stored run lacks (another `--episodes`) needs that run's checkpoint in
-ROOT; without it the command stops with an error naming the run, unless
-`--skip-missing` leaves those numbers out. `--list` shows how many seeds of each
-variant are stored. `--compare` sets variants of different experiments side by side
-from their stored reports (`run.compare`: frames to threshold, final and evaluation
-success, the logged gradient norms against each run's clip, and Welch's tests against
-the first variant named); it trains nothing.
+trains nothing. `--jobs N` trains N runs at once, each in its own process pinned to its
+share of the CPU cores (its log in `train.log` in the run's directory under ROOT): on a
+CPU with few cores a small run leaves cores idle, so runs side by side finish sooner in
+all (docs/benchmarks.md); on one GPU keep 1. An evaluation a stored run lacks (another
+`--episodes`) needs that run's checkpoint in ROOT; without it the command stops with an
+error naming the run, unless `--skip-missing` leaves those numbers out. `--list` shows
+how many seeds of each variant are stored. `--compare` sets variants of different
+experiments side by side from their stored reports (`study.compare`: frames to
+threshold, final and evaluation success, the logged gradient norms against each run's
+clip, and Welch's tests against the first variant named); it trains nothing.
 
 Outputs: `DOCS/experiments/NAME_SCALE.png` (training success rate and episode length
 against frames: the mean over seeds, shaded with its 95% t-band; the threshold and the
@@ -79,9 +78,8 @@ import sys
 from a2catvn_jax import cli
 from a2catvn_jax.config import ConfigError
 from a2catvn_jax.errors import Interrupted
-from a2catvn_jax.run import compare
-from a2catvn_jax.run import experiments as ex
-from a2catvn_jax.run.experiments import EXPERIMENTS, ExperimentError
+from a2catvn_jax.study import compare, report, runner, store
+from a2catvn_jax.study.registry import EXPERIMENTS, SCALES, ExperimentError
 
 
 def main(argv=None) -> None:
@@ -92,10 +90,10 @@ def main(argv=None) -> None:
     parser.add_argument("--compare", nargs="+", metavar="EXPERIMENT:LABEL", default=None,
                         help="set these variants of stored reports side by side and test each against the first "
                              "(e.g. 'aux:A2C+UNREAL' 'aux_clip40:A2C+UNREAL, clip 40'); trains nothing")
-    parser.add_argument("--scale", choices=ex.SCALES, default=None, help="default: cpu (--list: both)")
+    parser.add_argument("--scale", choices=SCALES, default=None, help="default: cpu (--list: both)")
     seeds = parser.add_mutually_exclusive_group()
-    seeds.add_argument("--seeds", type=int, nargs="+", default=list(ex.DEFAULT_SEEDS),
-                       help=f"default: {' '.join(map(str, ex.DEFAULT_SEEDS))}")
+    seeds.add_argument("--seeds", type=int, nargs="+", default=list(runner.DEFAULT_SEEDS),
+                       help=f"default: {' '.join(map(str, runner.DEFAULT_SEEDS))}")
     seeds.add_argument("--stored-seeds", action="store_true",
                        help="the seeds stored for every variant; trains nothing")
     seeds.add_argument("--all-stored", action="store_true",
@@ -104,9 +102,10 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes per run and set")
     parser.add_argument("--threshold", type=float, default=None,
                         help="training success rate for 'frames to threshold' (default: the experiment's, per scale)")
-    parser.add_argument("--root", default=str(ex.DEFAULT_ROOT), help="where the runs train (checkpoints, TensorBoard)")
-    parser.add_argument("--store", default=None,
-                        help=f"where finished runs are stored, to commit (default: DOCS/experiments/runs, i.e. {ex.DEFAULT_STORE})")
+    parser.add_argument("--root", default=str(store.DEFAULT_ROOT),
+                        help="where the runs train (checkpoints, TensorBoard)")
+    parser.add_argument("--store", default=str(store.DEFAULT_STORE),
+                        help="where finished runs are stored, to commit (default: %(default)s)")
     parser.add_argument("--docs", default="docs", help="where results.md and the plots go")
     parser.add_argument("--skip-missing", action="store_true",
                         help="leave out evaluations that a stored run lacks and whose checkpoint is not here")
@@ -123,10 +122,9 @@ def main(argv=None) -> None:
     unknown = [n for n in args.name if n not in EXPERIMENTS]
     if unknown:
         parser.error(f"unknown experiment {unknown[0]!r}; choose one of {', '.join(EXPERIMENTS)}")
-    store = args.store or f"{args.docs}/experiments/runs"
     if args.compare is not None:
         given = [option for option, used in (
-            ("NAME", args.name), ("--list", args.list), ("--seeds", args.seeds != list(ex.DEFAULT_SEEDS)),
+            ("NAME", args.name), ("--list", args.list), ("--seeds", args.seeds != list(runner.DEFAULT_SEEDS)),
             ("--stored-seeds", args.stored_seeds), ("--all-stored", args.all_stored), ("--episodes", args.episodes != 100),
             ("--threshold", args.threshold is not None), ("--train-only", args.train_only is not None),
             ("--skip-missing", args.skip_missing), ("--jobs", args.jobs != 1), ("--set", cli.overrides_of(args)))
@@ -135,11 +133,11 @@ def main(argv=None) -> None:
             parser.error(f"--compare reads the stored reports as they are; it takes no {', '.join(given)} "
                          "(only EXPERIMENT:LABEL arguments, --scale, --store and --docs)")
         with cli.errors(parser, code=2, kinds=(compare.CompareError, ValueError)):
-            print(compare.compare(args.compare, args.scale or "cpu", store))
+            print(compare.compare(args.compare, args.scale or "cpu", args.store))
         return
     if args.list:
         with cli.errors(parser, code=2, kinds=(ConfigError, ExperimentError, ValueError)):
-            print(ex.listing(store, [args.scale] if args.scale else ex.SCALES, args.name, cli.overrides_of(args)))
+            print(report.listing(args.store, [args.scale] if args.scale else SCALES, args.name, cli.overrides_of(args)))
         return
     if len(args.name) != 1:
         parser.error("name one experiment (or --list)")
@@ -152,18 +150,20 @@ def main(argv=None) -> None:
             cli.errors(parser, code=130, kinds=(Interrupted,)):
         run_seeds = args.seeds
         if args.stored_seeds or args.all_stored:
-            stored = ex.stored_seeds(exp, scale, store, cli.overrides_of(args))
+            stored = store.stored_seeds(exp, scale, args.store, cli.overrides_of(args))
             combine = set.intersection if args.stored_seeds else set.union
             run_seeds = sorted(combine(*(set(s) for s in stored.values())))
             if not run_seeds:
-                raise ExperimentError(f"{exp.name}: no seed is stored for every variant in {store} ("
+                raise ExperimentError(f"{exp.name}: no seed is stored for every variant in {args.store} ("
                                       + "; ".join(f"{label}: {len(s)}" for label, s in stored.items()) + ")"
-                                      if args.stored_seeds else f"{exp.name}: no run is stored in {store}")
+                                      if args.stored_seeds else f"{exp.name}: no run is stored in {args.store}")
         try:
-            ex.run_experiment(exp, scale=scale, seeds=run_seeds, episodes=args.episodes, root=args.root,
-                              docs=args.docs, store=store, overrides=cli.overrides_of(args), command=command.strip(),
-                              threshold=args.threshold, skip_missing=args.skip_missing, train_only=args.train_only,
-                              jobs=args.jobs, report=not args.no_report, stored_only=args.all_stored)
+            opts = runner.Options(scale=scale, seeds=run_seeds, episodes=args.episodes, root=args.root,
+                                  docs=args.docs, store=args.store, overrides=cli.overrides_of(args),
+                                  command=command.strip(), threshold=args.threshold, skip_missing=args.skip_missing,
+                                  train_only=args.train_only, jobs=args.jobs, report=not args.no_report,
+                                  stored_only=args.all_stored)
+            runner.run_experiment(exp, opts)
         except KeyboardInterrupt:  # a second Ctrl-C while a run trains in this process, or one while none does
             parser.exit(130, "aborted: the run in training keeps only its last checkpoint; "
                              "the same command resumes each unfinished run from its last checkpoint\n")

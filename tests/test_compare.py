@@ -1,5 +1,5 @@
 """Comparing variants of different experiments from their stored summaries
-(`run.compare`, `experiments --compare`): the numbers against NumPy and SciPy on a
+(`study.compare`, `experiments --compare`): the numbers against NumPy and SciPy on a
 hand-made store, and a clear one-line error for each thing that can be missing."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pytest
 from scipy import stats
 
 from a2catvn_jax import experiments as cli
-from a2catvn_jax.run import compare
-from a2catvn_jax.run import experiments as ex
+from a2catvn_jax.study import compare
+from a2catvn_jax.study.report import format_estimate
 
 GRAD_NORMS = {  # per variant, per run: the logged gradient norms
     "slow": [[0.6, 0.7, 0.4, 0.9], [0.8, 0.3, 0.55, 1.2]],
@@ -60,7 +60,7 @@ def test_numbers_match_numpy_and_scipy(tmp_path):
     slow, = rows_of(text, "slow")
     fast, = rows_of(text, "fast")
     assert slow[:5] == ["slow", "ea", "0, 1", "2.1M, 1/2 reached; 1 not by 3.0M",
-                        ex.format_estimate([0.6, 0.3])]
+                        format_estimate([0.6, 0.3])]
     assert fast[2] == "0–2" and fast[3].endswith("3/3 reached")
     assert slow[6] == "–"  # "slow" has no held-out evaluation
     # Gradient norms: the range of the runs' medians, of all log rows, and the rows above each run's clip.

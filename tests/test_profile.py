@@ -16,7 +16,7 @@ from a2catvn_jax import benchmark
 from a2catvn_jax.bench import profile as benchmark_profile
 from a2catvn_jax.bench.profile import AUX_TERMS, matmul_flops, profile_update
 from a2catvn_jax.config import load_config
-from a2catvn_jax.run import workers
+from a2catvn_jax.study import workers
 from tiny import TINY_LEARNER
 
 ONLY_DEPTH = [f"train.loss_weights.{t}=0" for t in AUX_TERMS if t != "depth"]

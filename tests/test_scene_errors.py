@@ -185,7 +185,7 @@ def _command(cli: str, path: Path, folder: Path) -> list[str]:
         return ["a2catvn_jax.evaluate", "--workdir", str(_evaluate_workdir(folder, path)), "--episodes", "1"]
     if cli == "experiments":
         return ["a2catvn_jax.experiments", "aux", "--seeds", "0", "--episodes", "1", "--root", str(folder / "exp"),
-                "--docs", str(folder / "docs"), "--set", *TINY_LEARNER, *scene]
+                "--docs", str(folder / "docs"), "--store", str(folder / "store"), "--set", *TINY_LEARNER, *scene]
     if cli == "benchmark":
         return ["a2catvn_jax.benchmark", "env", "--batch-sizes", "2", "--resolutions", "16", "--steps", "1",
                 "--no-gl", "--set", *scene]

@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from a2catvn_jax.run import workers
+from a2catvn_jax.study import workers
 
 
 def test_core_groups_split_evenly_and_refuse_too_many():
@@ -87,7 +87,7 @@ time.sleep(60)
 POOL = """
 import sys
 from pathlib import Path
-from a2catvn_jax.run import workers
+from a2catvn_jax.study import workers
 tmp = Path(sys.argv[1])
 try:
     workers.run_pool([[sys.executable, "-c", sys.argv[2], str(tmp / f"child{i}")] for i in range(3)], 1,

@@ -1,0 +1,259 @@
+"""An experiment's report: its figure, its tables and its section of docs/results.md.
+
+`plot` draws the learning curves of a summary (`stats.summarise`), `table` and
+`section` write its markdown, `write_section` puts a section between its markers in
+results.md, and `listing` counts the seeds stored for each variant. The number formats
+(`format_estimate`, `format_frames`, `seeds_text`) are shared with `compare`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import textwrap
+from collections import Counter
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.ticker import EngFormatter
+
+from a2catvn_jax.study.registry import BASELINE_LABELS, EVAL_SETS, EXPERIMENTS, SCALES, Experiment
+from a2catvn_jax.study.stats import FINAL_FRACTION, SMOOTH_FRACTION, estimate
+from a2catvn_jax.study.store import BASELINE_DIR, DEFAULT_STORE, DONE, plan, stored_runs
+
+
+def frames_text(value: float) -> str:
+    """0, 400k, 1.2M."""
+    if value == 0:
+        return "0"
+    return f"{value / 1e6:.1f}M" if value >= 1e6 else f"{value / 1e3:.0f}k"
+
+
+def format_frames(per_run: Sequence[Optional[float]], f_max: float) -> str:
+    """Frames to threshold over runs: the mean and interval of the runs that reach it,
+    and how many never do (e.g. `410k [350k, 470k], 4/5 reached; 1 not by 2.0M`)."""
+    reached = [v for v in per_run if v is not None]
+    n, k = len(per_run), len(reached)
+    if k == 0:
+        return f"0/{n} reached by {frames_text(f_max)}"
+    text = f"{estimate(reached, 0.0, f_max).format(frames_text)}, {k}/{n} reached"
+    return text if k == n else f"{text}; {n - k} not by {frames_text(f_max)}"
+
+
+def reference_houses(summary: dict) -> Optional[str]:
+    """The house set whose baselines the curves show: the training houses when evaluated."""
+    sets = [h for policy in summary["baselines"].values() for h in policy]
+    return "train" if "train" in sets else (sets[0] if sets else None)
+
+
+def plot(summary: dict, out, title: str) -> None:
+    """Success rate and episode length against frames: the mean over seeds, shaded with
+    its 95% t-band; horizontal lines for the threshold and the baselines."""
+    rows = math.ceil((len(summary["variants"]) + 3) / 3)  # legend rows below the panels
+    height = 3.4 + 0.17 * rows
+    fig = Figure(figsize=(10, height))
+    axes = fig.subplots(1, 2)
+    threshold = summary["threshold"]
+    limits = {"success_rate": 1.0, "episode_length": summary["max_episode_steps"]}
+    for label, v in summary["variants"].items():
+        frames = np.array(v["frames"])
+        n = len(v["seeds"])
+        reached = sum(f is not None for f in v["frames_to_threshold"])
+        legend = f"{label} ({n} seed{'s' if n > 1 else ''}; {reached}/{n} reach {threshold:g})"
+        for ax, key in zip(axes, ("success_rate", "episode_length")):
+            mean, half = np.array(v[key]["mean"]), np.array(v[key]["half_width_95"])
+            line, = ax.plot(frames, mean, label=legend)
+            if n > 1:
+                ax.fill_between(frames, np.clip(mean - half, 0, limits[key]), np.clip(mean + half, 0, limits[key]),
+                                color=line.get_color(), alpha=0.2, linewidth=0)
+    axes[0].axhline(threshold, color="grey", linestyle=":", linewidth=1, label=f"threshold {threshold:g}")
+    houses = reference_houses(summary)
+    for policy, style in (("random", "--"), ("oracle", "-.")):
+        result = summary["baselines"].get(policy, {}).get(houses)
+        if result is not None:
+            name = f"{BASELINE_LABELS[policy]} ({EVAL_SETS[houses]})"
+            axes[0].axhline(result["success_rate"], color="black", linestyle=style, linewidth=1, label=name)
+            axes[1].axhline(result["episode_length"], color="black", linestyle=style, linewidth=1)
+    axes[0].set_ylim(0, 1.02)
+    axes[1].set_ylim(0, summary["max_episode_steps"] * 1.02)
+    for ax, name in zip(axes, ("training success rate", "training episode length")):
+        ax.set_xlabel("frames")
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7, frameon=False)
+    fig.suptitle(textwrap.fill(title, 120), fontsize=10)  # a long description wraps, not clips
+    fig.tight_layout(rect=(0, 0.17 * rows / height + 0.02, 1, 1))
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+
+
+def format_estimate(values, lo: float = 0.0, hi: float = 1.0, fmt: Callable[[float], str] = "{:.2f}".format) -> str:
+    """`0.62 [0.55, 0.69]` over the values present; `(n=k)` when some are missing; – when none is."""
+    est = estimate(values, lo, hi)
+    if est is None:
+        return "–"
+    return est.format(fmt) + ("" if est.n == len(values) else f" (n={est.n})")
+
+
+def table(summary: dict, evaluations: Sequence[str]) -> str:
+    """The markdown table of a summary: per variant, the mean over seeds and its 95%
+    t-interval; then the baselines' evaluation numbers."""
+    head = ["variant", f"frames to success {summary['threshold']:g}", "final training success",
+            f"change over the last {FINAL_FRACTION:.0%}"]
+    for h in evaluations:
+        head += [f"success, {EVAL_SETS[h]}", f"SPL, {EVAL_SETS[h]}"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for label, v in summary["variants"].items():
+        cells = [label, format_frames(v["frames_to_threshold"], v["frames_max"]), format_estimate(v["final_success"]),
+                 format_estimate(v["late_change"], -1.0, 1.0, "{:+.2f}".format)]
+        for h in evaluations:
+            cells += [format_estimate(v["eval"][h]["success_rate"]), format_estimate(v["eval"][h]["spl"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    for policy, label in BASELINE_LABELS.items():
+        cells = [label, "–", "–", "–"]
+        for h in evaluations:
+            r = summary["baselines"].get(policy, {}).get(h)
+            cells += ["–", "–"] if r is None else [f"{r['success_rate']:.2f}", f"{r['spl']:.2f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def seeds_text(seeds: Sequence[int]) -> str:
+    seeds = sorted(seeds)
+    if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1)):
+        return f"{seeds[0]}–{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
+def _provenance(summary: dict) -> str:
+    """Where, when and from which commit the runs were trained (from their done.json)."""
+    trained = [t for v in summary["variants"].values() for t in v["trained"]]
+    machines = Counter(t["machine"] or "unknown" for t in trained)
+    dates = sorted(t["date"][:10] for t in trained if t["date"])
+    commits = Counter((t["git"] or {}).get("commit", "unknown")[:10]
+                      + ("+changes" if (t["git"] or {}).get("dirty") else "") for t in trained)
+    text = "Trained on " + "; ".join(f"{m} ({k} run{'s' if k > 1 else ''})" for m, k in machines.most_common())
+    if dates:
+        text += f", {dates[0]}" + (f" to {dates[-1]}" if dates[-1] != dates[0] else "")
+    return text + "; code: " + ", ".join(f"{c} ({k})" for c, k in commits.most_common()) + "."
+
+
+def _mean_minutes(seconds: Sequence[Optional[float]]) -> str:
+    known = [s for s in seconds if s is not None]
+    return f"{np.mean(known) / 60:.1f} min" if known else "not recorded"
+
+
+def section(exp: Experiment, scale: str, summary: dict, command: str, image: str) -> str:
+    evaluations = exp.evaluations
+    seeds = {label: v["seeds"] for label, v in summary["variants"].items()}
+    first_seeds = next(iter(seeds.values()))
+    n = min(len(s) for s in seeds.values())
+    if all(s == first_seeds for s in seeds.values()):
+        seeds_line = f"{seeds_text(first_seeds)} ({n} run{'s' if n > 1 else ''} per variant)"
+    else:  # a part-way report (`stored_only`)
+        seeds_line = "; ".join(f"{label} {seeds_text(s)} ({len(s)})" for label, s in seeds.items())
+    threshold = summary["threshold"]
+    lines = [
+        f"### {exp.title} ({scale} scale)",
+        "",
+        f"Command: `{command}`  ",
+        f"Configuration: `configs/{exp.config_path(scale).name}`; variants: "
+        + "; ".join(f"{v.label}" + (f" (`{' '.join(v.overrides)}`)" if v.overrides else "")
+                    + (" (pre-trained)" if v.pretrain and "pre-trained" not in v.label else "")
+                    for v in exp.variants) + ".  ",
+        *([f"Not in this part-way report, no run stored yet: {'; '.join(summary['not_stored'])}.  "]
+          if summary.get("not_stored") else []),
+        f"Seeds: {seeds_line}. Evaluation: {summary['episodes']} "
+        f"episodes per run and house set, sampled policy, complexity 1.  ",
+        _provenance(summary) + " Mean training wall time per run: "
+        + "; ".join(f"{label} {_mean_minutes(v['training_seconds'])}" for label, v in summary["variants"].items())
+        + " (compilation and pre-training included).",
+        "",
+        f"![{exp.name}]({image})",
+        "",
+        table(summary, evaluations),
+        "",
+        ("One seed: each cell is that run's value, no interval" if max(map(len, seeds.values())) == 1 else
+         "Each cell: the mean over the seeds and its 95% t-interval [low, high] (Student's t, n − 1 degrees of "
+         "freedom, clipped to the possible range" + ("; a variant with one run: its value, no interval)" if n == 1
+                                                     else ")"))
+        + "; (n=k): only k runs have that number. "
+        f"Frames to threshold: the first log row at which the training success rate, a running mean over "
+        f"{SMOOTH_FRACTION:.0%} of the run, reaches {threshold:g}; the mean and interval are over the runs that reach "
+        f"it, and the runs that never do are counted. Final training success: the last {FINAL_FRACTION:.0%} of the "
+        f"run; its change: that minus the {FINAL_FRACTION:.0%} before it (above 0: still improving when the run "
+        f"ended). Baselines, evaluated like the runs but with no training: a {BASELINE_LABELS['random']} and the "
+        f"{BASELINE_LABELS['oracle']} (`env.oracle`)."
+        + (" The blind variant (`agent.blind=true`) trains like the others on images of zeros: what it reaches "
+           "needs no sight." if any("agent.blind=true" in v.overrides for v in exp.variants) else "")
+        + f" Curves: the mean over seeds of the running mean, shaded with its 95% t-band; dotted: the threshold; "
+        f"dashed and dash-dotted: the random policy's and the oracle's success rate and episode length in the "
+        f"{EVAL_SETS.get(reference_houses(summary), 'evaluated houses')}.",
+    ]
+    tests = [(label, v["welch_p_frames_vs_first"]) for label, v in summary["variants"].items()][1:]
+    if tests and any(p is not None for _, p in tests):
+        first = next(iter(summary["variants"]))
+        lines += ["", f"Welch's t-test on frames to threshold against {first}, a run that never reaches it counted "
+                      f"at the run's last frame: " + "; ".join(f"{label} p = {'–' if p is None else f'{p:.2g}'}"
+                                                              for label, p in tests) + "."]
+    first = next(iter(summary["variants"]))
+    for h in evaluations:
+        tests = [(label, (v.get("welch_p_eval_success_vs_first") or {}).get(h))
+                 for label, v in summary["variants"].items()][1:]
+        if tests and any(p is not None for _, p in tests):
+            lines += ["", f"Welch's t-test on evaluation success ({EVAL_SETS[h]}) against {first}: "
+                      + "; ".join(f"{label} p = {'–' if p is None else f'{p:.2g}'}" for label, p in tests) + "."]
+    if exp.paper:
+        lines += ["", f"The paper: {exp.paper}"]
+    return "\n".join(lines)
+
+
+def write_section(results_md: Path, exp: Experiment, scale: str, text: str) -> None:
+    """Put `text` between the experiment's markers in `results_md` (appended the first time)."""
+    start, end = f"<!-- experiment {exp.name} {scale} -->", f"<!-- end experiment {exp.name} {scale} -->"
+    block = f"{start}\n{text}\n{end}"
+    old = results_md.read_text() if results_md.exists() else "# Results\n"
+    pattern = re.compile(re.escape(start) + r".*?" + re.escape(end), re.S)
+    new = pattern.sub(lambda _: block, old) if pattern.search(old) else old.rstrip("\n") + "\n\n" + block + "\n"
+    results_md.parent.mkdir(parents=True, exist_ok=True)
+    results_md.write_text(new)
+
+
+def listing(store=DEFAULT_STORE, scales: Sequence[str] = SCALES, names: Optional[Sequence[str]] = None,
+            overrides: Sequence[str] = ()) -> str:
+    """Per experiment and scale, how many seeds of each variant are stored; then the stored
+    run keys no current variant has (runs of another configuration, kept but unused)."""
+    lines, known = [], set()
+    for exp in EXPERIMENTS.values():
+        if names and exp.name not in names:
+            continue
+        configs = f"{exp.config}.yaml" if exp.cpu_only else f"{exp.config}[_cpu].yaml"
+        lines.append(f"{exp.name}: {exp.title} (configs/{configs}; success threshold "
+                     f"{exp.threshold:g}, {exp.cpu_threshold:g} at CPU scale)")
+        for scale in scales:
+            stored = stored_runs(exp, scale, store, overrides)
+            keys = {r.variant: r.stored.parent.name for r in plan(exp, scale, [0], store=store, overrides=overrides)}
+            for v in exp.variants:
+                seeds = sorted(stored[v.label])
+                known |= set(stored[v.label].values())
+                what = " ".join(v.overrides) or "as configured"
+                lines.append(f"  {scale:5s} {v.label}: {len(seeds)} stored"
+                             f"{f' (seeds {seeds_text(seeds)})' if seeds else ''}"
+                             f" [{keys[v]}: {what}{' + pre-training' if v.pretrain else ''}]")
+    others = []
+    for scale in scales:
+        for config_dir in sorted(p for p in (Path(store) / scale).glob("*") if p.is_dir()):
+            for key_dir in sorted(p for p in config_dir.glob("*") if p.is_dir() and p.name != BASELINE_DIR):
+                unused = [d for d in key_dir.glob("seed_*") if (d / DONE).is_file() and d not in known]
+                if unused:
+                    label = json.loads((unused[0] / "variant.json").read_text()).get("label", "")
+                    others.append(f"  {scale}/{config_dir.name}/{key_dir.name}: {len(unused)} stored ({label})")
+    if others and not names:
+        lines += ["stored runs no current variant uses (another configuration; `config.yaml` in each says which):",
+                  *others]
+    return "\n".join(lines)

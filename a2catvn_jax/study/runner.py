@@ -1,0 +1,306 @@
+"""An experiment from start to report: plan its runs, train what is neither stored nor
+finished, evaluate and store each run, then summarise, plot and write its section.
+
+`run_experiment(exp, Options(...))` goes through four steps: `select_runs` (the plan,
+or only the stored runs for a part-way report), `train_missing` (in this process, or
+`jobs` at a time in processes of their own, `workers.run_pool`), `evaluate_run` for
+each run and `baselines` for the policies that need no training (both cached in the
+store), and `report` (the JSON summary `STORE/SCALE/NAME.json`, the figure
+`DOCS/experiments/NAME_SCALE.png` and the section of `DOCS/results.md`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import jax
+
+from a2catvn_jax.agent.update import total_updates
+from a2catvn_jax.config import load_config
+from a2catvn_jax.errors import Interrupted
+from a2catvn_jax.run.evaluation import evaluate_baseline, evaluate_sets
+from a2catvn_jax.run.pretraining import PRETRAINED_DIR, pretrain
+from a2catvn_jax.run.training import train
+from a2catvn_jax.study import report as rp
+from a2catvn_jax.study import store as st
+from a2catvn_jax.study.registry import BASELINE_LABELS, EVAL_SETS, SCALES, Experiment, ExperimentError
+from a2catvn_jax.study.stats import summarise
+from a2catvn_jax.study.store import DEFAULT_ROOT, DEFAULT_STORE, Run
+from a2catvn_jax.study.workers import run_pool
+
+DEFAULT_SEEDS = (0, 1, 2, 3, 4)
+Log = Callable[[str], None]
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """How to run an experiment.
+
+    Runs stored in `store` are not trained again, and their curves and evaluations come
+    from the store; the others are trained in `root`, evaluated and stored. `threshold`
+    replaces the experiment's success-rate threshold at this scale; `skip_missing` leaves
+    out evaluations a stored run lacks and cannot make here (no checkpoint) instead of
+    raising `ExperimentError`; `compilation_cache` keeps compiled programs in
+    ROOT/.jax_cache (a process-wide JAX setting). `train_only` (variant labels) trains
+    only those variants' runs; while runs of the others are neither stored nor trained,
+    nothing is reported. `stored_only` trains nothing and reports the stored runs among
+    `seeds`, however many each variant has (a variant with none stored yet is left out
+    and named; the first variant, the reference, needs one). `jobs` > 1 trains that many
+    runs at once, each in a process of its own pinned to its share of the CPU cores;
+    `report=False` stops after the training (what those processes do). `command` is
+    the command line the report quotes.
+    """
+
+    scale: str = "cpu"
+    seeds: tuple[int, ...] = DEFAULT_SEEDS
+    episodes: int = 100
+    root: Path = DEFAULT_ROOT
+    docs: Path = Path("docs")
+    store: Path = DEFAULT_STORE
+    overrides: tuple[str, ...] = ()
+    command: str = ""
+    threshold: Optional[float] = None
+    skip_missing: bool = False
+    compilation_cache: bool = True
+    train_only: Optional[tuple[str, ...]] = None
+    jobs: int = 1
+    report: bool = True
+    stored_only: bool = False
+
+    def __post_init__(self):
+        for name in ("root", "docs", "store"):
+            object.__setattr__(self, name, Path(getattr(self, name)))
+        object.__setattr__(self, "seeds", tuple(self.seeds))
+        object.__setattr__(self, "overrides", tuple(self.overrides))
+        if self.train_only is not None:
+            object.__setattr__(self, "train_only", tuple(self.train_only))
+        if self.scale not in SCALES:
+            raise ExperimentError(f"scale must be one of {SCALES}, got {self.scale!r}")
+        if not self.seeds:
+            raise ExperimentError("at least one seed is needed")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ExperimentError(f"seeds must differ, got {list(self.seeds)}")
+        if self.episodes < 1:
+            raise ExperimentError(f"episodes must be >= 1, got {self.episodes}")
+        if self.threshold is not None and not 0.0 < self.threshold <= 1.0:
+            raise ExperimentError(f"threshold must be in (0, 1], got {self.threshold}")
+
+    def threshold_for(self, exp: Experiment) -> float:
+        return exp.threshold_at(self.scale) if self.threshold is None else self.threshold
+
+
+# -- training ---------------------------------------------------------------------------
+
+
+def compilation_cache(directory: Path) -> None:
+    """Keep compiled programs on disk: seeds of a variant (same shapes and scenes) compile once."""
+    if jax.config.jax_compilation_cache_dir is None:
+        jax.config.update("jax_compilation_cache_dir", str(directory.absolute()))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+def train_run(run: Run, log: Log) -> float:
+    """Train `run` to its end (resuming it if it was interrupted); returns the seconds it took now."""
+    saved = st.saved_updates(run.workdir)
+    if max(saved, default=0) >= total_updates(run.cfg):
+        return 0.0
+    t0 = time.perf_counter()
+    run.workdir.mkdir(parents=True, exist_ok=True)
+    (run.workdir / "variant.json").write_text(json.dumps(dataclasses.asdict(run.variant), indent=1) + "\n")
+    resume = bool(saved)  # a run stopped before its first checkpoint starts again from scratch
+    init_from = None
+    if run.variant.pretrain and not resume:
+        init_from = run.workdir / "pretrain"
+        if not (init_from / PRETRAINED_DIR).is_dir():
+            log(f"pre-training {run.name}")
+            pretrain(run.cfg, init_from, log=lambda _: None)
+    log(f"{'resuming' if resume else 'training'} {run.name} in {run.workdir}")
+    _, state, _ = train(run.cfg, run.workdir, resume=resume, progress=False, log=lambda _: None, init_from=init_from)
+    seconds = time.perf_counter() - t0
+    timing = run.workdir / "experiment_time.json"
+    spent = json.loads(timing.read_text())["seconds"] if timing.exists() else 0.0
+    timing.write_text(json.dumps({"seconds": spent + seconds}) + "\n")
+    if int(state.update) < total_updates(run.cfg):  # Ctrl-C or SIGTERM: checkpointed, not finished
+        raise Interrupted(f"interrupted: {run.name} stopped at update {int(state.update)} of "
+                          f"{total_updates(run.cfg)} with a checkpoint in {run.workdir}; the same command "
+                          f"resumes it")
+    return seconds
+
+
+def train_in_processes(exp: Experiment, runs: list[Run], opts: Options, log: Log) -> None:
+    """Train, evaluate and store `runs`, `opts.jobs` at a time, each in its own process on
+    its share of the cores (`workers.run_pool`); raises `ExperimentError` naming the runs
+    that failed and their logs."""
+    def command(run: Run) -> list[str]:
+        return [sys.executable, "-m", "a2catvn_jax.experiments", exp.name, "--scale", opts.scale,
+                "--seeds", str(run.seed), "--train-only", run.variant.label, "--episodes", str(opts.episodes),
+                "--root", str(opts.root), "--store", str(opts.store), "--docs", str(opts.docs), "--no-report",
+                *(["--set", *opts.overrides] if opts.overrides else [])]
+
+    logs = [run.workdir / "train.log" for run in runs]
+    t0 = time.perf_counter()
+
+    def started(i, cores):
+        log(f"started {runs[i].name} on core(s) {','.join(map(str, cores))}; log: {logs[i]}")
+
+    def ended(i, code):
+        minutes = (time.perf_counter() - t0) / 60
+        state = "stored" if code == 0 and runs[i].is_stored() else f"FAILED (exit status {code})"
+        log(f"{state}: {runs[i].name} ({minutes:.1f} min after the start)")
+
+    log(f"training {len(runs)} run(s), {opts.jobs} at a time, each in its own process")
+    codes = run_pool([command(run) for run in runs], opts.jobs, logs, on_start=started, on_end=ended)
+    failed = [f"{run.name} (log: {path})" for run, path, code in zip(runs, logs, codes)
+              if code != 0 or not run.is_stored()]
+    if failed:
+        raise ExperimentError(f"{len(failed)} of {len(runs)} run(s) failed: " + "; ".join(failed))
+
+
+def train_missing(exp: Experiment, runs: list[Run], opts: Options, log: Log) -> None:
+    """Train, evaluate and store the runs (of the `train_only` variants) that are not
+    stored, seed by seed (every variant of seed 0, then of seed 1, ...: an experiment
+    stopped part-way leaves comparable seeds behind); variants with the same
+    configuration share one run."""
+    to_train = {}  # work directory -> run
+    for run in sorted(runs, key=lambda r: r.seed):
+        if not run.is_stored() and (opts.train_only is None or run.variant.label in opts.train_only):
+            to_train.setdefault(run.workdir, run)
+    if opts.jobs > 1 and to_train:
+        train_in_processes(exp, list(to_train.values()), opts, log)
+    for i, run in sorted(enumerate(runs), key=lambda ir: ir[1].seed):
+        if run.is_stored() or run.workdir not in to_train:
+            continue
+        log(f"[{i + 1}/{len(runs)}] {run.name}")
+        seconds = train_run(run, log)
+        if seconds:
+            log(f"  trained in {seconds / 60:.1f} min")
+        st.store_run(run, evaluate_run(run, exp.evaluations, opts.episodes, log=log), opts.episodes)
+        log(f"  stored in {run.stored}")
+
+
+# -- evaluation -------------------------------------------------------------------------
+
+
+def evaluate_run(run: Run, houses: Sequence[str], episodes: int, policy: str = "sample", *,
+                 skip_missing: bool = False, log: Log = lambda _: None) -> dict:
+    """houses -> the evaluation of the run's last checkpoint in those houses.
+
+    Each result is read from the store, else from the work directory's cache; the
+    missing ones are evaluated together from the final checkpoint (one restore, one
+    compile for the sets of one shape), cached and, for a stored run, added to the
+    store. Without that checkpoint: `ExperimentError`, or None for each missing set
+    with `skip_missing`."""
+    results = st.saved_evaluations(run, houses, episodes, policy)
+    missing = [h for h in houses if h not in results]
+    if not missing:
+        return results
+    if not st.has_final_checkpoint(run):
+        if skip_missing:
+            log(f"skipped: {run.name} has no stored evaluation in {', '.join(missing)} with {episodes} episodes")
+            return {**results, **{h: None for h in missing}}
+        stored = sorted(p.name for p in run.stored.glob("eval_*.json"))
+        raise ExperimentError(
+            f"{run.name} ({run.stored}): no stored evaluation in {', '.join(missing)} houses with {policy} policy and "
+            f"{episodes} episodes (stored: {', '.join(stored) or 'none'}), and its final checkpoint is not in "
+            f"{run.workdir}; use the stored episode count, or pass --skip-missing")
+    log(f"evaluating {run.name} in {', '.join(missing)}")
+    fresh = evaluate_sets(run.workdir, episodes, houses=missing, policies=(policy,), log=lambda _: None)
+    for h in missing:
+        results[h] = fresh[(h, policy)]
+        st.save_evaluation(run, h, policy, episodes, results[h])
+    return results
+
+
+def baselines(exp: Experiment, scale: str, cfg, houses: Sequence[str], episodes: int, store=DEFAULT_STORE,
+              log: Log = lambda _: None) -> dict:
+    """policy -> houses -> the result of that baseline (`BASELINE_LABELS`) in the
+    experiment's environment, cached in STORE/SCALE/CONFIG/baselines/."""
+    out: dict = {}
+    for policy in BASELINE_LABELS:
+        out[policy] = {}
+        for h in houses:
+            path = st.baseline_path(exp, scale, cfg, policy, h, episodes, store)
+            if not path.is_file():
+                log(f"evaluating the {BASELINE_LABELS[policy]} in {EVAL_SETS[h]}")
+                st.save_result(path, evaluate_baseline(cfg, episodes, houses=h, policy=policy, log=lambda _: None))
+            out[policy][h] = json.loads(path.read_text())
+    return out
+
+
+# -- the whole experiment ---------------------------------------------------------------
+
+
+def select_runs(exp: Experiment, opts: Options, log: Log) -> tuple[Experiment, list[Run], list[str]]:
+    """The experiment as reported (without the variants a part-way report leaves out),
+    its runs, and the labels of the variants left out."""
+    labels = [v.label for v in exp.variants]
+    unknown = [label for label in opts.train_only or () if label not in labels]
+    if unknown:
+        raise ExperimentError(f"{exp.name} has no variant {', '.join(map(repr, unknown))}; its variants: "
+                              + ", ".join(map(repr, labels)))
+    runs = st.plan(exp, opts.scale, opts.seeds, opts.root, opts.overrides, opts.store)
+    if not opts.stored_only:
+        return exp, runs, []
+    runs = [r for r in runs if r.is_stored()]
+    not_stored = [v.label for v in exp.variants if not any(r.variant == v for r in runs)]
+    if exp.variants[0].label in not_stored:  # the reference every other variant is tested against
+        raise ExperimentError(f"{exp.name}: no run of {exp.variants[0].label!r} (the variant the others are "
+                              f"compared with) is stored in {opts.store}")
+    if not_stored:
+        log(f"{exp.name}: left out of this part-way report, none of their runs stored yet: "
+            + ", ".join(map(repr, not_stored)))
+        exp = dataclasses.replace(exp, variants=tuple(v for v in exp.variants if v.label not in not_stored))
+    return exp, runs, not_stored
+
+
+def report(exp: Experiment, runs: list[Run], opts: Options, not_stored: list[str], log: Log, t0: float) -> dict:
+    """Summarise the stored `runs` with their evaluations and the baselines, and write
+    the summary's JSON, its figure and its section; returns the summary (`t0`: when the
+    experiment started, for the log)."""
+    records = [st.run_record(run, evaluate_run(run, exp.evaluations, opts.episodes, skip_missing=opts.skip_missing,
+                                               log=log)) for run in runs]
+    base_cfg = load_config(exp.config_path(opts.scale), opts.overrides)
+    baseline = baselines(exp, opts.scale, base_cfg, exp.evaluations, opts.episodes, opts.store, log)
+    summary = summarise(exp, records, baseline, opts.threshold_for(exp))
+    summary.update(scale=opts.scale, episodes=opts.episodes, max_episode_steps=runs[0].cfg.env.max_episode_steps,
+                   overrides=list(opts.overrides), command=opts.command, not_stored=not_stored)
+    out_json = opts.store / opts.scale / f"{exp.name}.json"
+    out_json.parent.mkdir(parents=True, exist_ok=True)
+    out_json.write_text(json.dumps(summary, indent=1) + "\n")
+    image = opts.docs / "experiments" / f"{exp.name}_{opts.scale}.png"
+    rp.plot(summary, image, f"{exp.title} ({opts.scale} scale, configs/{exp.config_path(opts.scale).name})")
+    rp.write_section(opts.docs / "results.md", exp, opts.scale,
+                     rp.section(exp, opts.scale, summary, opts.command, image.relative_to(opts.docs).as_posix()))
+    log(f"wrote {image}, {out_json} and its section of {opts.docs / 'results.md'} in {time.perf_counter() - t0:.0f} s")
+    log(rp.table(summary, exp.evaluations))
+    return summary
+
+
+def run_experiment(exp: Experiment, opts: Options = Options(), log: Optional[Log] = None) -> dict:
+    """Train, evaluate, store and report `exp` (`Options`); returns its summary (also
+    written as JSON). With runs of other variants than `train_only` neither stored nor
+    trained, nothing is reported and the summary is {"experiment": name, "pending": [run
+    names]}: a long experiment can be trained a variant at a time, across sittings and
+    machines, through the store. With `report=False`: {"experiment": name, "trained":
+    [the stored runs]}."""
+    log = log or functools.partial(print, flush=True)
+    t0 = time.perf_counter()
+    exp, runs, not_stored = select_runs(exp, opts, log)
+    if opts.compilation_cache:
+        compilation_cache(opts.root / ".jax_cache")
+    stored = sum(r.is_stored() for r in runs)
+    log(f"{exp.name}: {len(runs)} runs, {stored} stored in {opts.store}, {len(runs) - stored} to train or finish")
+    train_missing(exp, runs, opts, log)
+    if not opts.report:
+        return {"experiment": exp.name, "trained": [run.name for run in runs if run.is_stored()]}
+    pending = [run.name for run in runs if not run.is_stored()]
+    if pending:
+        log(f"not reported: {len(pending)} run(s) neither stored nor trained now: {', '.join(pending)}")
+        return {"experiment": exp.name, "pending": pending}
+    return report(exp, runs, opts, not_stored, log, t0)
