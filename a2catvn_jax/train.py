@@ -1,7 +1,7 @@
 """Train an A2CAT-VN agent.
 
     python -m a2catvn_jax.train [--config configs/NAME.yaml [MORE.yaml ...]] [--workdir DIR] [--set KEY=VALUE ...]
-        [--resume] [--updates N] [--init-from PRETRAIN_DIR]
+        [--resume] [--updates N] [--init-from PRETRAIN_DIR] [--devices N]
 
 With no arguments it trains the quickstart configuration (`configs/quickstart.yaml`)
 in `runs/quickstart`. The work directory receives `config.yaml`, orbax checkpoints
@@ -11,7 +11,9 @@ included), `metrics.jsonl`, `metrics.csv` and TensorBoard logs (`tb/`).
 `--resume` continues the run in the work directory from its latest checkpoint, with
 the configuration saved there: training N updates, stopping and resuming for N more
 gives the same parameters as 2N updates in one go. A non-finite loss stops the run
-with an error and leaves the last good checkpoint in place.
+with an error and leaves the last good checkpoint in place. The environments are split
+over every local device (`--devices N`: the first N); the results are those of one
+device at the same batch, to float rounding.
 """
 
 from __future__ import annotations
@@ -37,10 +39,14 @@ def main(argv=None) -> None:
     parser.add_argument("--no-progress", action="store_true", help="log lines instead of a progress bar")
     parser.add_argument("--init-from", metavar="DIR", default=None,
                         help="start a new run from the matching parameters of a pre-training work directory")
+    parser.add_argument("--devices", type=int, default=None, metavar="N",
+                        help="split the environments over the first N local devices (default: all of them)")
     args = parser.parse_args(argv)
     workdir = Path(args.workdir or DEFAULT_WORKDIR)
     if args.updates is not None and args.updates < 1:
         parser.error(f"--updates must be >= 1, got {args.updates}")
+    if args.devices is not None and args.devices < 1:
+        parser.error(f"--devices must be >= 1, got {args.devices}")
     if args.init_from and args.resume:
         parser.error("--init-from starts a new run; it cannot be combined with --resume")
 
@@ -64,7 +70,7 @@ def main(argv=None) -> None:
     with cli.errors(parser, code=1):
         try:
             train(cfg, workdir, resume=args.resume, max_updates=args.updates, progress=not args.no_progress,
-                  init_from=args.init_from)
+                  init_from=args.init_from, devices=args.devices)
         except KeyboardInterrupt:
             parser.exit(130, f"aborted without a checkpoint; `--workdir {workdir} --resume` goes on from the last one\n")
 

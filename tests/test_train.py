@@ -249,7 +249,7 @@ def test_second_ctrl_c_aborts_with_one_line(monkeypatch, tmp_path, capsys):
     assert flag.stop
     with pytest.raises(KeyboardInterrupt):
         flag(signal.SIGINT, None)
-    assert capsys.readouterr().err.strip() == "stopping after this update"
+    assert capsys.readouterr().err.strip() == "stopping after the updates in progress"
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt

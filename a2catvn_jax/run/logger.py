@@ -31,10 +31,11 @@ class Interval:
         self.sums: dict[str, float] = {}
         self.updates = 0
 
-    def add(self, metrics: dict):
+    def add(self, metrics: dict, updates: int = 1):
+        """Add one update's metrics, or the sums of `updates` updates' metrics."""
         for k, v in metrics.items():
             self.sums[k] = self.sums.get(k, 0.0) + float(v)
-        self.updates += 1
+        self.updates += updates
 
     def row(self) -> dict:
         """Means of the loss terms and the episode statistics of the interval."""

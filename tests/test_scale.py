@@ -1,0 +1,159 @@
+"""Training at scale: many updates per call of the compiled loop, and the environments
+split over every local device. Both give the results of one update per call on one
+device, to float rounding.
+
+The two-device run is a subprocess with two host CPU devices (XLA_FLAGS must be set
+before JAX starts).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from a2catvn_jax.config import load_config
+from a2catvn_jax.run.logger import read_jsonl
+from a2catvn_jax.run.training import TrainingError, devices_for, next_stop, train
+from tiny import TINY_LEARNER
+
+TINY = TINY_LEARNER + ["env.scene.kind=room", "env.scene.num_scenes=1", "env.max_episode_steps=10"]
+QUIET = dict(progress=False, log=lambda *_: None)
+
+
+def _leaves(state):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(jax.device_get(state))]
+
+
+def test_calls_stop_at_log_checkpoint_and_call_boundaries():
+    cfg = load_config(None, TINY + ["train.log_every=4", "train.checkpoint_every=6", "train.updates_per_call=3"])
+    stops, update = [], 0
+    while update < 13:
+        update = next_stop(update, 13, cfg)
+        stops.append(update)
+    assert stops == [3, 4, 6, 8, 9, 12, 13]
+    default = load_config(None, TINY + ["train.log_every=5", "train.checkpoint_every=500"])
+    assert next_stop(0, 100, default) == 5 and next_stop(7, 100, default) == 10
+
+
+def test_many_updates_per_call_match_one_per_call_and_resume_exactly(tmp_path):
+    """Six updates as two calls of three (the default: `train.log_every` per call), with a
+    stop and a resume between them, against six calls of one: the same parameters and the
+    same logged losses, to float rounding; the per-call run's log rows are the means of
+    the one-per-call run's."""
+    one = load_config(None, TINY + ["train.log_every=1", "train.checkpoint_every=3", "train.updates_per_call=1"])
+    _, single, _ = train(one, tmp_path / "one", max_updates=6, **QUIET)
+    three = load_config(None, TINY + ["train.log_every=3", "train.checkpoint_every=3"])
+    train(three, tmp_path / "three", max_updates=3, **QUIET)
+    _, looped, _ = train(three, tmp_path / "three", resume=True, max_updates=3, **QUIET)
+    assert int(looped.update) == 6
+    for a, b in zip(_leaves(looped.params), _leaves(single.params)):
+        np.testing.assert_allclose(a, b, rtol=2e-4, atol=2e-6)
+    for a, b in zip(_leaves(looped.env_state.info), _leaves(single.env_state.info)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+    per_update = read_jsonl(tmp_path / "one" / "metrics.jsonl")
+    per_call = read_jsonl(tmp_path / "three" / "metrics.jsonl")
+    assert [r["update"] for r in per_call] == [3, 6]
+    for row, part in zip(per_call, (per_update[:3], per_update[3:])):
+        for key in ("loss/total", "loss/actor", "loss/depth", "learning_rate", "grad_norm"):
+            np.testing.assert_allclose(row[key], np.mean([r[key] for r in part]), rtol=2e-3, err_msg=key)
+        assert row["episodes"] == sum(r["episodes"] for r in part)
+
+
+def test_a_batch_that_does_not_split_over_the_devices_is_one_line():
+    devices = jax.local_devices()
+    with pytest.raises(TrainingError, match=rf"^--devices {len(devices) + 1}: this machine has {len(devices)} "):
+        devices_for(load_config(None, TINY), len(devices) + 1)
+    assert devices_for(load_config(None, TINY), None) == devices
+
+
+TWO_DEVICES = textwrap.dedent(
+    """
+    import os, sys
+    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    import jax, numpy as np
+    sys.path.insert(0, "tests")
+    from tiny import TINY_LEARNER
+    from a2catvn_jax.config import load_config
+    from a2catvn_jax.run.training import train
+    from a2catvn_jax.train import main
+
+    assert len(jax.local_devices()) == 2
+    tmp = sys.argv[1]
+    cfg = load_config(None, TINY_LEARNER + ["env.scene.kind=room", "env.scene.num_scenes=1",
+                                            "env.max_episode_steps=10", "train.log_every=2"])
+    lines = []
+    _, split, _ = train(cfg, tmp + "/split", max_updates=4, progress=False, log=lines.append)
+    assert any("4 environments on 2 cpu devices" in line for line in lines), lines
+    assert len(split.env_state.obs.rgb.addressable_shards) == 2
+    assert split.env_state.obs.rgb.sharding.spec == jax.sharding.PartitionSpec("batch")
+    _, whole, _ = train(cfg, tmp + "/whole", max_updates=4, progress=False, log=lambda *_: None, devices=1)
+    assert len(whole.env_state.obs.rgb.addressable_shards) == 1
+    for a, b in zip(jax.tree_util.tree_leaves(jax.device_get(split.params)),
+                    jax.tree_util.tree_leaves(jax.device_get(whole.params))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-4, atol=2e-6)
+    np.testing.assert_allclose(np.asarray(split.env_state.info.pose), np.asarray(whole.env_state.info.pose),
+                               rtol=1e-4, atol=1e-5)
+    # The sharded run resumes from its checkpoint on the devices it ran on.
+    _, resumed, _ = train(cfg, tmp + "/split", resume=True, max_updates=2, progress=False, log=lambda *_: None)
+    assert int(resumed.update) == 6 and len(resumed.env_state.obs.rgb.addressable_shards) == 2
+    try:
+        main(["--set", *TINY_LEARNER, "env.num_envs=3", "--workdir", tmp + "/odd", "--updates", "1", "--no-progress"])
+        raise AssertionError("3 environments over 2 devices")
+    except SystemExit as e:
+        assert e.code == 1
+    print("OK")
+    """
+)
+
+
+def test_environments_split_over_two_devices_give_the_one_device_result(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-c", TWO_DEVICES, str(tmp_path)], cwd=root, capture_output=True, text=True,
+                          timeout=900)
+    assert proc.returncode == 0 and proc.stdout.strip().endswith("OK"), proc.stderr[-3000:]
+    assert "error: env.num_envs=3 environments cannot be split evenly over 2 devices" in proc.stderr
+    assert proc.stderr.count("\n") >= 1 and "Traceback" not in proc.stderr
+
+
+def test_learning_rate_scales_with_the_batch():
+    from a2catvn_jax.agent.update import learning_rate
+
+    def lr(envs, scaling):
+        return learning_rate(load_config(None, [f"env.num_envs={envs}", f"train.lr_scaling={scaling}"]))
+
+    assert lr(256, "none") == pytest.approx(7e-4)
+    assert lr(256, "linear") == pytest.approx(7e-4 * 16) and lr(256, "sqrt") == pytest.approx(7e-4 * 4)
+    assert lr(16, "linear") == pytest.approx(7e-4) and lr(4, "sqrt") == pytest.approx(7e-4 / 2)
+
+
+@pytest.mark.parametrize("optimizer", ["rmsprop", "adam", "lamb"])
+def test_each_optimizer_takes_its_own_first_step(optimizer):
+    """The first step of each optimiser after the clip, on every parameter array: RMSprop
+    (decay 0.99) moves each weight by lr * g / sqrt(0.01 g^2), i.e. 10 lr; Adam by lr;
+    LAMB by a step whose norm is lr times the array's norm (its trust ratio). The
+    learning rate is scaled with the batch (4 environments, linear: a quarter)."""
+    from a2catvn_jax.agent.networks import make_networks
+    from a2catvn_jax.agent.update import make_update
+    from a2catvn_jax.env import NavEnv
+
+    cfg = load_config(None, TINY + [f"train.optimizer={optimizer}", "train.lr_scaling=linear"])
+    env = NavEnv(cfg.env)
+    init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
+    state = init(jax.random.PRNGKey(0))
+    before = jax.device_get(state.params)
+    after = jax.device_get(update(state)[0].params)
+    lr = 7e-4 / 4
+    kernel = lambda p: np.asarray(p["params"]["conv1"]["kernel"])  # noqa: E731
+    step = kernel(after) - kernel(before)
+    if optimizer == "rmsprop":
+        assert np.max(np.abs(step)) == pytest.approx(10 * lr, rel=1e-2)
+    elif optimizer == "adam":
+        assert np.max(np.abs(step)) == pytest.approx(lr, rel=1e-2)
+    else:
+        assert np.linalg.norm(step) == pytest.approx(lr * np.linalg.norm(kernel(before)), rel=1e-2)
