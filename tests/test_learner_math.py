@@ -470,14 +470,14 @@ class Setup:
         def run(params, env_state, agent, key):
             feats = net.target_stream(params, env.target_images()["rgb"])
             traj, truth, *_ = acting.rollout(env, net, params, feats, env_state, agent, key, cfg.train.rollout_length,
-                                             lambda obs: update_lib.frame_truth(cfg, obs.depth, obs.segmentation))
+                                             lambda obs: update_lib.frame_truth(update_lib.learner(cfg), obs.depth, obs.segmentation))
             return traj, truth
 
         return run(self.ts.params, self.ts.env_state, self.ts.agent, key)
 
     def loss(self, params, traj, truth, replay, key):
-        targets = update_lib.targets_of(self.cfg, self.env)
-        return update_lib.loss(self.cfg, self.net, targets, params, traj, truth, self.ts.agent.carry, replay, key)
+        targets = update_lib.targets_of(update_lib.learner(self.cfg), self.env)
+        return update_lib.loss(update_lib.learner(self.cfg), self.net, targets, params, traj, truth, self.ts.agent.carry, replay, key)
 
 
 FRAME_STACK = ["agent.memory=frame_stack", "agent.segmentation_loss=cross_entropy", "agent.space_to_depth=true"]
@@ -602,7 +602,7 @@ def test_replay_term_settings_reach_the_losses(lstm, overrides):
         traj, _ = lstm.rollout(jax.random.PRNGKey(10 + seed))
         replay = replay_lib.add(replay, traj, lstm.ts.agent.carry)
     feats, key = lstm.target_feats, jax.random.PRNGKey(7)
-    terms = jax.jit(functools.partial(update_lib.replay_terms, cfg, net))(params, feats, replay, key)
+    terms = jax.jit(functools.partial(update_lib.replay_terms, update_lib.learner(cfg), net))(params, feats, replay, key)
 
     k_seq, k_rp = jax.random.split(key)
     frames = 4 if overrides else 3
@@ -630,9 +630,9 @@ def test_aux_every_puts_the_vision_losses_on_every_kth_frame(lstm):
     the network and the loss functions), and differ from the all-frames losses."""
     cfg = load_config(None, TINY + ["train.aux_every=3"])
     traj, truth = lstm.rollout(jax.random.PRNGKey(12))
-    targets = update_lib.targets_of(cfg, lstm.env)
+    targets = update_lib.targets_of(update_lib.learner(cfg), lstm.env)
     params, net = lstm.ts.params, lstm.net
-    _, terms = jax.jit(functools.partial(update_lib.loss, cfg, net, targets))(
+    _, terms = jax.jit(functools.partial(update_lib.loss, update_lib.learner(cfg), net, targets))(
         params, traj, truth, lstm.ts.agent.carry, None, jax.random.PRNGKey(0))
     _, every = jax.jit(lstm.loss)(params, traj, truth, None, jax.random.PRNGKey(0))
     feats = net.target_stream(params, targets.rgb)
@@ -667,11 +667,11 @@ def test_remat_vision_heads_gives_the_same_losses_and_gradients(request, setup, 
     plain_cfg = load_config(None, TINY + overrides)
     cfg = load_config(None, TINY + overrides + ["train.remat_vision_heads=true"])
     traj, truth = base.rollout(jax.random.PRNGKey(13))
-    targets = update_lib.targets_of(cfg, base.env)
+    targets = update_lib.targets_of(update_lib.learner(cfg), base.env)
     params, carry = base.ts.params, base.ts.agent.carry
 
     def grad_of(c):
-        loss = functools.partial(update_lib.loss, c, base.net, targets)
+        loss = functools.partial(update_lib.loss, update_lib.learner(c), base.net, targets)
         return jax.jit(jax.grad(lambda p: loss(p, traj, truth, carry, None, jax.random.PRNGKey(0)), has_aux=True))
 
     plain, remat = grad_of(plain_cfg), grad_of(cfg)
@@ -758,12 +758,13 @@ def test_grad_norms_of_each_term_on_the_shared_layers(lstm):
     on conv1-conv4, computed here directly."""
     ts = lstm.ts
     norms = jax.device_get(update_lib.make_grad_norms(lstm.env, lstm.net, lstm.cfg)(ts))
-    targets = update_lib.targets_of(lstm.cfg, lstm.env)
-    batch = update_lib.collect(lstm.cfg, lstm.env, lstm.net, targets, ts)
+    spec = update_lib.learner(lstm.cfg)
+    targets = update_lib.targets_of(spec, lstm.env)
+    batch = update_lib.collect(spec, lstm.env, lstm.net, targets, ts)
     w = lstm.cfg.train.loss_weights
 
     def shared_norm(name):
-        term = lambda p: getattr(w, name) * update_lib.loss(lstm.cfg, lstm.net, targets, p, *batch.loss_args)[1][name]  # noqa: E731
+        term = lambda p: getattr(w, name) * update_lib.loss(spec, lstm.net, targets, p, *batch.loss_args)[1][name]  # noqa: E731
         g = jax.jit(jax.grad(term))(ts.params)["params"]
         return float(np.sqrt(sum(np.sum(np.square(np.asarray(x))) for k in networks.SHARED_LAYERS
                                  for x in jax.tree_util.tree_leaves(g[k]))))

@@ -30,12 +30,14 @@ not a compile-time constant). Sequences are time-major: `[T, B, ...]`.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from typing import Callable, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jax.sharding import NamedSharding, PartitionSpec
 
@@ -45,7 +47,7 @@ from a2catvn_jax.agent.acting import actor_critic_sequence, initial_agent, rollo
 from a2catvn_jax.agent.networks import RP_FRAMES, SHARED_LAYERS, VN_HEADS, Networks, Params, apply_flat
 from a2catvn_jax.agent.types import FrameTruth, TrainState, Transition
 from a2catvn_jax.config import Config
-from a2catvn_jax.env.world import SEGMENTATION_COLORS
+from a2catvn_jax.env.scenes.spec import SEGMENTATION_COLORS
 
 
 def frames_per_update(cfg: Config) -> int:
@@ -68,37 +70,102 @@ def vn_heads_on(cfg: Config) -> tuple[str, ...]:
     return tuple(h for h in VN_HEADS if getattr(cfg.train.loss_weights, h) > 0)
 
 
-def learning_rate_schedule(cfg: Config) -> optax.Schedule:
-    """lr * (f_max - f) / f_max (paper), or a constant."""
+REFERENCE_ENVS = 16  # `train.lr_scaling` scales the learning rate relative to the paper's 16 environments
+
+
+def learning_rate(cfg: Config) -> float:
+    """`train.learning_rate`, scaled with the batch (`train.lr_scaling`): times B / 16
+    (linear) or sqrt(B / 16) (sqrt), B the environments of the whole run."""
     tc = cfg.train
-    if tc.lr_schedule == "linear":
-        return optax.linear_schedule(tc.learning_rate, 0.0, total_updates(cfg))
-    return optax.constant_schedule(tc.learning_rate)
+    ratio = cfg.env.num_envs / REFERENCE_ENVS
+    return tc.learning_rate * {"none": 1.0, "linear": ratio, "sqrt": math.sqrt(ratio)}[tc.lr_scaling]
+
+
+def learning_rate_schedule(cfg: Config) -> optax.Schedule:
+    """lr * (f_max - f) / f_max (paper), or a constant; lr scaled by `learning_rate`."""
+    lr = learning_rate(cfg)
+    if cfg.train.lr_schedule == "linear":
+        return optax.linear_schedule(lr, 0.0, total_updates(cfg))
+    return optax.constant_schedule(lr)
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
-    """Global gradient-norm clipping, then RMSprop (eps outside the square root)."""
+    """Global gradient-norm clipping, then RMSprop (eps outside the square root; the
+    paper's), Adam or LAMB (`train.optimizer`)."""
     tc = cfg.train
-    return optax.chain(
-        optax.clip_by_global_norm(tc.max_grad_norm),
-        optax.rmsprop(learning_rate_schedule(cfg), decay=tc.rmsprop_decay, eps=tc.rmsprop_eps, eps_in_sqrt=False),
+    schedule = learning_rate_schedule(cfg)
+    step = {
+        "rmsprop": lambda: optax.rmsprop(schedule, decay=tc.rmsprop_decay, eps=tc.rmsprop_eps, eps_in_sqrt=False),
+        "adam": lambda: optax.adam(schedule, eps=tc.rmsprop_eps),
+        "lamb": lambda: optax.lamb(schedule, eps=tc.rmsprop_eps),
+    }[tc.optimizer]()
+    return optax.chain(optax.clip_by_global_norm(tc.max_grad_norm), step)
+
+
+@dataclasses.dataclass(frozen=True)
+class Learner:
+    """What the update's losses and rollout need from the configuration, read once
+    (`learner(cfg)`): the functions below take these values, not the config tree."""
+
+    rollout_length: int
+    image_size: int
+    frames_per_update: int
+    gamma: float
+    weights: tuple[tuple[str, float], ...]  # (loss term, weight) of every term with a non-zero weight
+    vn_heads: tuple[str, ...]  # the depth / segmentation heads whose loss is on
+    replay: bool  # a replay loss is on (so there is a replay buffer)
+    timeout_bootstrap: bool  # a time-out bootstraps the returns from the critic
+    colors: Optional[tuple]  # segmentation targets' class colours in [0, 1], or None for class ids
+    aux_downsize: int
+    aux_every: int
+    remat_vision_heads: bool
+    replay_batch: int
+    pixel_control_gamma: float
+    pixel_control_cell: int
+    pixel_control_reward: str
+    reward_prediction_loss: str
+    reward_prediction_zero_fraction: float
+    reward_prediction_target: str
+    complexity: float  # the environment's complexity without a curriculum
+    curriculum: Optional[tuple[tuple[float, float], tuple[int, int]]]  # (complexities, frame counts) or None
+
+    def weight(self, term: str) -> float:
+        return dict(self.weights).get(term, 0.0)
+
+
+def learner(cfg: Config) -> Learner:
+    """The `Learner` of configuration `cfg`."""
+    tc, w = cfg.train, cfg.train.loss_weights
+    colors = segmentation_colors(cfg)
+    return Learner(
+        rollout_length=tc.rollout_length, image_size=cfg.env.render.image_size,
+        frames_per_update=frames_per_update(cfg), gamma=tc.gamma,
+        weights=tuple((f.name, getattr(w, f.name)) for f in dataclasses.fields(w) if getattr(w, f.name) > 0),
+        vn_heads=vn_heads_on(cfg), replay=uses_replay(cfg), timeout_bootstrap=tc.timeout_bootstrap,
+        colors=None if colors is None else tuple(map(tuple, colors.tolist())),
+        aux_downsize=tc.aux_downsize, aux_every=tc.aux_every, remat_vision_heads=tc.remat_vision_heads,
+        replay_batch=tc.replay_batch, pixel_control_gamma=tc.pixel_control_gamma,
+        pixel_control_cell=tc.pixel_control_cell, pixel_control_reward=tc.pixel_control_reward,
+        reward_prediction_loss=tc.reward_prediction_loss,
+        reward_prediction_zero_fraction=tc.reward_prediction_zero_fraction,
+        reward_prediction_target=tc.reward_prediction_target, complexity=cfg.env.complexity,
+        curriculum=(tuple(tc.curriculum_complexity), tuple(tc.curriculum_frames)) if tc.curriculum else None,
     )
 
 
-def complexity(cfg: Config, frames):
+def complexity(spec: Learner, frames):
     """Curriculum complexity tau after `frames` frames (paper: 0.3 -> 1.0 from 5M to 10M frames)."""
-    tc = cfg.train
-    if not tc.curriculum:
-        return jnp.float32(cfg.env.complexity)
-    (t0, t1), (f0, f1) = tc.curriculum_complexity, tc.curriculum_frames
+    if spec.curriculum is None:
+        return jnp.float32(spec.complexity)
+    (t0, t1), (f0, f1) = spec.curriculum
     frac = jnp.clip((jnp.asarray(frames, jnp.float32) - f0) / max(f1 - f0, 1), 0.0, 1.0)
     return jnp.float32(t0) + (t1 - t0) * frac
 
 
-def timeouts(cfg: Config, traj: Transition):
+def timeouts(spec: Learner, traj: Transition):
     """The steps [T, N] whose time-out the returns bootstrap from the critic at, or None
     when a time-out is terminal (`train.timeout_bootstrap=false`: the paper's returns)."""
-    return traj.truncated if cfg.train.timeout_bootstrap else None
+    return traj.truncated if spec.timeout_bootstrap else None
 
 
 def segmentation_colors(cfg: Config):
@@ -106,19 +173,23 @@ def segmentation_colors(cfg: Config):
     None for class-id targets (`agent.segmentation_loss=cross_entropy`)."""
     if cfg.agent.segmentation_loss == "cross_entropy":
         return None
-    return jnp.asarray(SEGMENTATION_COLORS, jnp.float32) / 255.0
+    return np.asarray(SEGMENTATION_COLORS, np.float32) / 255.0
 
 
-def frame_truth(cfg: Config, depth, segmentation) -> FrameTruth:
+def _colors(spec: Learner):
+    return None if spec.colors is None else jnp.asarray(spec.colors, jnp.float32)
+
+
+def frame_truth(spec: Learner, depth, segmentation) -> FrameTruth:
     """Depth and segmentation ground truth of frames (depth [N, H, W] metres,
     segmentation [N, H, W] class ids) at auxiliary resolution, for the losses that are on."""
-    heads, f = vn_heads_on(cfg), cfg.train.aux_downsize
+    heads, f = spec.vn_heads, spec.aux_downsize
     depth = losses.depth_targets(depth, f) if "depth" in heads else None
-    seg = losses.segmentation_targets(segmentation, f, segmentation_colors(cfg)) if "segmentation" in heads else None
+    seg = losses.segmentation_targets(segmentation, f, _colors(spec)) if "segmentation" in heads else None
     return FrameTruth(depth, seg)
 
 
-def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: FrameTruth, target_seg, every: int = 1,
+def vn_terms(spec: Learner, networks: Networks, params: Params, conv4, truth: FrameTruth, target_seg, every: int = 1,
              remat: bool = False) -> dict:
     """Depth, observation and target segmentation losses (those with a non-zero weight)
     of conv4 maps [N, ..., g, g, c4] against `truth` and the targets' segmentation
@@ -126,7 +197,7 @@ def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: Fram
     (a rollout's time axis: `train.aux_every`). With `remat` (`train.remat_vision_heads`)
     the heads run one entry of that axis at a time and again in the backward pass
     instead of keeping their activations."""
-    heads = vn_heads_on(cfg)
+    heads = spec.vn_heads
     if not heads:
         return {}
     if every > 1:
@@ -154,35 +225,36 @@ def vn_terms(cfg: Config, networks: Networks, params: Params, conv4, truth: Fram
     return {name: jnp.mean(value) for name, value in per_step.items()}
 
 
-def replay_terms(cfg: Config, networks: Networks, params: Params, target_feats, replay: replay_lib.Replay, key) -> dict:
+def replay_terms(spec: Learner, networks: Networks, params: Params, target_feats, replay: replay_lib.Replay,
+                 key) -> dict:
     """Off-policy critic, pixel control and reward prediction losses (those with a
     non-zero weight) on sequences and windows sampled from the replay buffer."""
-    tc, w = cfg.train, cfg.train.loss_weights
     k_seq, k_rp = jax.random.split(key)
     terms = {}
-    n = tc.replay_batch
-    if w.off_policy_critic > 0 or w.pixel_control > 0:
+    n = spec.replay_batch
+    on = dict(spec.weights)
+    if "off_policy_critic" in on or "pixel_control" in on:
         seq, carry0 = replay_lib.sample_sequences(replay, k_seq, n)
         _, out = unroll(networks, params, target_feats, seq.inputs, carry0)
-        if w.off_policy_critic > 0:
+        if "off_policy_critic" in on:
             _, values = actor_critic_sequence(networks, params, out)
-            terms["off_policy_critic"] = losses.off_policy_critic_loss(values, seq.reward, seq.done, tc.gamma,
-                                                                       timeouts(cfg, seq))
-        if w.pixel_control > 0:
+            terms["off_policy_critic"] = losses.off_policy_critic_loss(values, seq.reward, seq.done, spec.gamma,
+                                                                       timeouts(spec, seq))
+        if "pixel_control" in on:
             q = apply_flat(lambda x: networks.pixel_control(params, x), out)
-            pc_loss = functools.partial(losses.pixel_control_loss, gamma=tc.pixel_control_gamma,
-                                        cell=tc.pixel_control_cell, reward=tc.pixel_control_reward)
+            pc_loss = functools.partial(losses.pixel_control_loss, gamma=spec.pixel_control_gamma,
+                                        cell=spec.pixel_control_cell, reward=spec.pixel_control_reward)
             terms["pixel_control"] = jnp.mean(jax.vmap(pc_loss, in_axes=1)(seq.rgb, seq.action, seq.done, q))
-    if w.reward_prediction > 0:
+    if "reward_prediction" in on:
         data = replay.data
         # "next_frame": windows of RP_FRAMES + 1 steps in one episode, the head sees the first RP_FRAMES.
-        frames = RP_FRAMES + (tc.reward_prediction_target == "next_frame")
+        frames = RP_FRAMES + (spec.reward_prediction_target == "next_frame")
         win, reward = replay_lib.sample_reward_windows(replay, k_rp, n, frames, data.reward, data.reset,
-                                                       tc.reward_prediction_zero_fraction)
+                                                       spec.reward_prediction_zero_fraction)
         flat = lambda x: x[:, :RP_FRAMES].reshape((n * RP_FRAMES,) + x.shape[2:])  # noqa: E731
         conv4, _ = networks.encode(params, flat(win.rgb), target_feats[flat(win.target)])
         logits = networks.reward_prediction(params, conv4.reshape((n, RP_FRAMES) + conv4.shape[1:]))
-        terms["reward_prediction"] = losses.reward_prediction_loss(logits, reward, tc.reward_prediction_loss)
+        terms["reward_prediction"] = losses.reward_prediction_loss(logits, reward, spec.reward_prediction_loss)
     return terms
 
 
@@ -207,30 +279,28 @@ class Targets(NamedTuple):
     segmentation: jnp.ndarray
 
 
-def targets_of(cfg: Config, env) -> Targets:
+def targets_of(spec: Learner, env) -> Targets:
     images = env.target_images()
-    colors = segmentation_colors(cfg)
-    return Targets(images["rgb"], losses.segmentation_targets(images["segmentation"], cfg.train.aux_downsize, colors))
+    return Targets(images["rgb"], losses.segmentation_targets(images["segmentation"], spec.aux_downsize, _colors(spec)))
 
 
-def loss(cfg: Config, networks: Networks, targets: Targets, params: Params, traj: Transition, truth: FrameTruth,
+def loss(spec: Learner, networks: Networks, targets: Targets, params: Params, traj: Transition, truth: FrameTruth,
          carry0, replay: Optional[replay_lib.Replay], key):
     """(total loss, per-term losses) of one rollout `traj` [T(+1), B] started from core state
     `carry0`, its frames' ground truth, and (when given) samples of the replay buffer."""
-    tc, w = cfg.train, cfg.train.loss_weights
-    traj.check(tc.rollout_length, traj.action.shape[1], cfg.env.render.image_size)
+    traj.check(spec.rollout_length, traj.action.shape[1], spec.image_size)
     target_feats = networks.target_stream(params, targets.rgb)
     conv4, out = unroll(networks, params, target_feats, traj.inputs, carry0)
     logits, values = actor_critic_sequence(networks, params, out)
     held = jax.lax.stop_gradient(values)
-    returns = losses.bootstrapped_returns(traj.reward, traj.done, held[-1], tc.gamma, timeouts(cfg, traj), held[:-1])
+    returns = losses.bootstrapped_returns(traj.reward, traj.done, held[-1], spec.gamma, timeouts(spec, traj), held[:-1])
     actor, critic, neg_entropy = losses.actor_critic_losses(logits[:-1], values[:-1], traj.action, returns)
     terms = {"actor": actor, "critic": critic, "entropy": neg_entropy}
-    terms.update(vn_terms(cfg, networks, params, conv4, truth, targets.segmentation[traj.target], tc.aux_every,
-                          tc.remat_vision_heads))
+    terms.update(vn_terms(spec, networks, params, conv4, truth, targets.segmentation[traj.target], spec.aux_every,
+                          spec.remat_vision_heads))
     if replay is not None:
-        terms.update(replay_terms(cfg, networks, params, target_feats, replay, key))
-    total = sum(getattr(w, name) * value for name, value in terms.items())
+        terms.update(replay_terms(spec, networks, params, target_feats, replay, key))
+    total = sum(spec.weight(name) * value for name, value in terms.items())
     return total, terms
 
 
@@ -254,16 +324,16 @@ class Batch(NamedTuple):
         return self.traj, self.truth, self.carry0, self.replay, self.loss_key
 
 
-def collect(cfg: Config, env, networks: Networks, targets: Targets, ts: TrainState) -> Batch:
+def collect(spec: Learner, env, networks: Networks, targets: Targets, ts: TrainState) -> Batch:
     """The rollout of the update that follows `ts`, written to the replay buffer (pure:
     `ts` is not changed, so a diagnostic can collect the same batch the update will)."""
     key, k_roll, k_loss = jax.random.split(ts.key, 3)
-    tau = complexity(cfg, ts.update * frames_per_update(cfg))
-    env_state = env.set_complexity(ts.env_state, tau) if cfg.train.curriculum else ts.env_state
+    tau = complexity(spec, ts.update * spec.frames_per_update)
+    env_state = env.set_complexity(ts.env_state, tau) if spec.curriculum is not None else ts.env_state
     target_feats = networks.target_stream(ts.params, targets.rgb)
-    truth = lambda obs: frame_truth(cfg, obs.depth, obs.segmentation)  # noqa: E731
+    truth = lambda obs: frame_truth(spec, obs.depth, obs.segmentation)  # noqa: E731
     traj, truth_seq, env_state, agent, stats = rollout(env, networks, ts.params, target_feats, env_state, ts.agent,
-                                                       k_roll, cfg.train.rollout_length, truth)
+                                                       k_roll, spec.rollout_length, truth)
     replay = ts.replay if ts.replay is None else replay_lib.add(ts.replay, traj, ts.agent.carry)
     return Batch(traj, truth_seq, ts.agent.carry, replay, k_loss, env_state, agent, stats, key, tau)
 
@@ -277,17 +347,17 @@ def warmup_rollouts(cfg: Config) -> int:
     return max(1, cfg.train.replay_size // cfg.train.rollout_length) - 1
 
 
-def warmup(cfg: Config, env, networks: Networks, targets: Targets, ts: TrainState) -> TrainState:
-    """`ts` after `warmup_rollouts(cfg)` rollouts of its policy written to the replay buffer:
+def warmup(spec: Learner, rollouts: int, env, networks: Networks, targets: Targets, ts: TrainState) -> TrainState:
+    """`ts` after `rollouts` (`warmup_rollouts(cfg)`) rollouts of its policy written to the replay buffer:
     the environments, the agent's memory, the buffer and the key move on; the parameters,
     the optimiser state and the update count (so the frame count, the learning rate and
     the curriculum) do not."""
 
     def one(_, ts):
-        batch = collect(cfg, env, networks, targets, ts)
+        batch = collect(spec, env, networks, targets, ts)
         return ts.replace(env_state=batch.env_state, agent=batch.agent, replay=batch.replay, key=batch.key)
 
-    return jax.lax.fori_loop(0, warmup_rollouts(cfg), one, ts)
+    return jax.lax.fori_loop(0, rollouts, one, ts)
 
 
 def make_grad_norms(env, networks: Networks, cfg: Config) -> Callable:
@@ -295,15 +365,15 @@ def make_grad_norms(env, networks: Networks, cfg: Config) -> Callable:
     each weighted loss term (and of their sum) on the conv layers every head shares
     (`networks.SHARED_LAYERS`), on the batch the next update will learn from. It changes
     no state; the training loop calls it every `train.grad_norm_every` updates."""
-    targets = targets_of(cfg, env)
-    w = cfg.train.loss_weights
+    spec = learner(cfg)
+    targets = targets_of(spec, env)
 
     def grad_norms(ts: TrainState) -> dict:
-        batch = collect(cfg, env, networks, targets, ts)
+        batch = collect(spec, env, networks, targets, ts)
 
         def weighted_terms(params):
-            _, terms = loss(cfg, networks, targets, params, *batch.loss_args)
-            return {name: getattr(w, name) * value for name, value in terms.items()}
+            _, terms = loss(spec, networks, targets, params, *batch.loss_args)
+            return {name: spec.weight(name) * value for name, value in terms.items()}
 
         terms, vjp_fn = jax.vjp(weighted_terms, ts.params)
         shared = lambda g: optax.tree.norm({k: g["params"][k] for k in SHARED_LAYERS})  # noqa: E731
@@ -327,28 +397,29 @@ class UpdateFns(NamedTuple):
 
 def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
     """The jitted training step of configuration `cfg` in `env` (see the module docstring)."""
-    tc = cfg.train
+    tc, spec = cfg.train, learner(cfg)
     T, B = tc.rollout_length, env.num_envs
     optimizer = make_optimizer(cfg)
     schedule = learning_rate_schedule(cfg)
     replay_slots = max(1, tc.replay_size // T)
-    targets = targets_of(cfg, env)
+    targets = targets_of(spec, env)
+    example = transition_example(cfg, B)
+    warmup_steps = warmup_rollouts(cfg)
 
     def init(key, params: Optional[Params] = None) -> TrainState:
         k_param, k_env, k_train = jax.random.split(key, 3)
         params = networks.init(k_param) if params is None else params
-        env_state = env.reset(k_env, complexity=complexity(cfg, 0))
+        env_state = env.reset(k_env, complexity=complexity(spec, 0))
         agent = initial_agent(networks, B)
-        replay = (replay_lib.init(transition_example(cfg, B), agent.carry, replay_slots, tc.replay_envs)
-                  if uses_replay(cfg) else None)
+        replay = replay_lib.init(example, agent.carry, replay_slots, tc.replay_envs) if spec.replay else None
         ts = TrainState(params, optimizer.init(params), env_state, agent, replay, k_train, jnp.zeros((), jnp.int32))
-        if tc.replay_warmup and replay is not None:
-            ts = warmup(cfg, env, networks, targets, ts)
+        if warmup_steps:
+            ts = warmup(spec, warmup_steps, env, networks, targets, ts)
         return ts
 
     def update(ts: TrainState):
-        batch = collect(cfg, env, networks, targets, ts)
-        grad_fn = jax.value_and_grad(functools.partial(loss, cfg, networks, targets), has_aux=True)
+        batch = collect(spec, env, networks, targets, ts)
+        grad_fn = jax.value_and_grad(functools.partial(loss, spec, networks, targets), has_aux=True)
         (total, terms), grads = grad_fn(ts.params, *batch.loss_args)
         updates, opt_state = optimizer.update(grads, ts.opt_state, ts.params)
         params = optax.apply_updates(ts.params, updates)
@@ -370,6 +441,12 @@ def shard(ts: TrainState, mesh, axis: str = "batch") -> TrainState:
     (environment and agent state, the replay buffer's environment axis) and everything
     else replicated. `update` keeps that layout: each device steps, renders and runs the
     network for its share of the environments, and gradients are reduced across them."""
+    return jax.device_put(ts, sharding_of(ts, mesh, axis))
+
+
+def sharding_of(ts: TrainState, mesh, axis: str = "batch") -> TrainState:
+    """The layout `shard` gives a train state (or its `jax.eval_shape`): a tree of
+    `NamedSharding`s, usable as a jit's `out_shardings`."""
     tm = jax.tree_util.tree_map
     replicated = NamedSharding(mesh, PartitionSpec())
 
@@ -383,6 +460,37 @@ def shard(ts: TrainState, mesh, axis: str = "batch") -> TrainState:
             raise ValueError(f"the replay keeps {kept} environments per rollout (train.replay_envs), which cannot be "
                              f"split over {devices} devices: make it a multiple of {devices}")
         replay = replay_lib.Replay(tm(along(2), ts.replay.data), tm(along(1), ts.replay.carry), replicated)
-    spec = TrainState(tm(lambda _: replicated, ts.params), tm(lambda _: replicated, ts.opt_state),
+    return TrainState(tm(lambda _: replicated, ts.params), tm(lambda _: replicated, ts.opt_state),
                       tm(along(0), ts.env_state), tm(along(0), ts.agent), replay, replicated, replicated)
-    return jax.device_put(ts, spec)
+
+
+NONFINITE = "nonfinite_at"  # `repeated`'s metric: the first of its updates (1-based) with a non-finite metric, 0: none
+UPDATES = "updates"  # `repeated`'s metric: how many updates its sums are over
+
+
+def repeated(update: Callable, layout: Optional[TrainState] = None) -> Callable:
+    """`updates(ts, n) -> (ts, sums)`: `n` updates in one call, a loop on the device (one
+    compile serves every n), with each metric summed over them, `UPDATES` (= n) and
+    `NONFINITE` (the first update, counted from 1, whose metrics were not all finite;
+    0 when all were). The host reads one small dict per call, not one per update.
+    `layout` (`sharding_of`) pins the state's sharding on the way in and out, so that the
+    state a call returns is laid out as the next call was compiled for."""
+
+    def updates(ts: TrainState, n):
+        _, example = jax.eval_shape(update, ts)
+        zeros = jax.tree_util.tree_map(lambda m: jnp.zeros(m.shape, m.dtype), example)
+
+        def body(i, carry):
+            ts, sums, bad = carry
+            ts, metrics = update(ts)
+            finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in jax.tree_util.tree_leaves(metrics)]))
+            bad = jnp.where((bad == 0) & ~finite, i + 1, bad)
+            return ts, jax.tree_util.tree_map(jnp.add, sums, metrics), bad
+
+        ts, sums, bad = jax.lax.fori_loop(0, n, body, (ts, zeros, jnp.int32(0)))
+        return ts, {**sums, UPDATES: jnp.asarray(n, jnp.int32), NONFINITE: bad}
+
+    if layout is None:
+        return jax.jit(updates, donate_argnums=0)
+    replicated = NamedSharding(jax.tree_util.tree_leaves(layout)[0].mesh, PartitionSpec())
+    return jax.jit(updates, donate_argnums=0, in_shardings=(layout, replicated), out_shardings=(layout, replicated))

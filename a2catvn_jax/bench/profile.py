@@ -131,10 +131,10 @@ def profile_update(cfg: Config, repeats: int = 5, ops: int = 0) -> dict:
     update = fns.update.lower(ts).compile()  # one compile serves the timing, the trace and its HLO
     ts, _ = update(ts)  # the buffer now holds a rollout
     jax.block_until_ready(ts)
-    targets = update_lib.targets_of(cfg, env)
+    targets = update_lib.targets_of(update_lib.learner(cfg), env)
     frames = update_lib.frames_per_update(cfg)
 
-    collect = jax.jit(lambda ts: update_lib.collect(cfg, env, networks, targets, ts))
+    collect = jax.jit(lambda ts: update_lib.collect(update_lib.learner(cfg), env, networks, targets, ts))
     batch = collect(ts)
     phases = {"rollout (environment + policy)": _timed(collect, ts, repeats=repeats)}
 
@@ -149,7 +149,7 @@ def profile_update(cfg: Config, repeats: int = 5, ops: int = 0) -> dict:
         one pair per set of terms (with one term on, "+ term" and "every term" are one program)."""
         if keep not in compiled:
             c = _with_weights(cfg, keep)
-            loss = lambda params, args: update_lib.loss(c, networks, targets, params, *args)[0]  # noqa: E731
+            loss = lambda params, args: update_lib.loss(update_lib.learner(c), networks, targets, params, *args)[0]  # noqa: E731
             compiled[keep] = jax.jit(loss), jax.jit(jax.value_and_grad(loss))
         return compiled[keep]
 

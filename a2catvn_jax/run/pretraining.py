@@ -27,7 +27,7 @@ import orbax.checkpoint as ocp
 
 from a2catvn_jax.agent.networks import make_networks
 from a2catvn_jax.agent.types import FrameTruth
-from a2catvn_jax.agent.update import frame_truth, targets_of, vn_terms
+from a2catvn_jax.agent.update import frame_truth, learner, targets_of, vn_terms
 from a2catvn_jax.config import save_config
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.errors import UserError
@@ -61,7 +61,7 @@ def make_dataset(cfg, env: NavEnv, size: int, key) -> dict:
         tilt = jax.random.choice(keys[0], tilts, (CHUNK,))
         pose = pose.at[:, 3].set(tilt)
         frame = env.render_poses(scene, pose)
-        truth = frame_truth(cfg, frame.depth, frame.cls)
+        truth = frame_truth(learner(cfg), frame.depth, frame.cls)
         out = {"rgb": frame.rgb, "target": env.target_index(scene, goal)}
         out.update({name: x for name, x in (("depth_gt", truth.depth), ("seg_gt", truth.segmentation)) if x is not None})
         return out
@@ -84,7 +84,8 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
     pc = cfg.pretrain
     env = NavEnv(cfg.env)
     networks = make_networks(cfg, env.num_actions)
-    target_rgb, target_seg = targets_of(cfg, env)
+    spec = learner(cfg)
+    target_rgb, target_seg = targets_of(spec, env)
     key = jax.random.PRNGKey(cfg.seed)
     k_params, k_data, k_order = jax.random.split(key, 3)
     t0 = time.perf_counter()
@@ -99,7 +100,7 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
         target_feats = networks.target_stream(params, target_rgb)
         conv4, _ = networks.encode(params, batch["rgb"], target_feats[batch["target"]])
         truth = FrameTruth(batch.get("depth_gt"), batch.get("seg_gt"))
-        terms = vn_terms(cfg, networks, params, conv4, truth, target_seg[batch["target"]])
+        terms = vn_terms(spec, networks, params, conv4, truth, target_seg[batch["target"]])
         return sum(getattr(w, k) * v for k, v in terms.items()), terms
 
     @jax.jit
