@@ -3,6 +3,7 @@
     python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1 2 3 4 | --stored-seeds | --all-stored]
         [--episodes 100] [--threshold T] [--root runs/experiments] [--store results]
         [--docs docs] [--skip-missing] [--jobs N] [--set KEY=VALUE ...]
+    python -m a2catvn_jax.experiments NAME --plan [--seeds ...] [--root DIR] [--store DIR] [--set KEY=VALUE ...]
     python -m a2catvn_jax.experiments --list [NAME ...] [--scale cpu|paper] [--store DIR]
     python -m a2catvn_jax.experiments --compare EXPERIMENT:LABEL EXPERIMENT:LABEL [...] [--scale cpu|paper]
         [--store DIR]
@@ -115,6 +116,9 @@ def main(argv=None) -> None:
     parser.add_argument("--jobs", type=int, default=1,
                         help="train this many runs at once, each in its own process on its share of the CPU cores "
                              "(faster in all on a CPU with few cores; on one GPU keep 1)")
+    parser.add_argument("--plan", action="store_true",
+                        help="print one self-contained command per unfinished run (for a SLURM job array or any "
+                             "scheduler: each stores its run in --store); trains nothing")
     parser.add_argument("--no-report", action="store_true", help=argparse.SUPPRESS)  # what --jobs' processes run
     cli.add_config_args(parser, config=False,
                         help="configuration changes applied to every variant (they change the runs' names)")
@@ -163,6 +167,9 @@ def main(argv=None) -> None:
                                   command=command.strip(), threshold=args.threshold, skip_missing=args.skip_missing,
                                   train_only=args.train_only, jobs=args.jobs, report=not args.no_report,
                                   stored_only=args.all_stored)
+            if args.plan:
+                print("\n".join(runner.plan_commands(exp, opts)))
+                return
             runner.run_experiment(exp, opts)
         except KeyboardInterrupt:  # a second Ctrl-C while a run trains in this process, or one while none does
             parser.exit(130, "aborted: the run in training keeps only its last checkpoint; "

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -133,15 +134,38 @@ def train_run(run: Run, log: Log) -> float:
     return seconds
 
 
+def run_command(exp: Experiment, run: Run, opts: Options, python: str = sys.executable) -> list[str]:
+    """The command line that trains, evaluates and stores one run of `exp` by itself (what
+    `--jobs` processes run and `--plan` prints)."""
+    return [python, "-m", "a2catvn_jax.experiments", exp.name, "--scale", opts.scale,
+            "--seeds", str(run.seed), "--train-only", run.variant.label, "--episodes", str(opts.episodes),
+            "--root", str(opts.root), "--store", str(opts.store), "--docs", str(opts.docs), "--no-report",
+            *(["--set", *opts.overrides] if opts.overrides else [])]
+
+
+def unfinished(runs: list[Run], opts: Options) -> list[Run]:
+    """The runs to train (of the `train_only` variants), one per work directory (variants
+    with the same configuration share a run), seed by seed."""
+    to_train = {}  # work directory -> run
+    for run in sorted(runs, key=lambda r: r.seed):
+        if not run.is_stored() and (opts.train_only is None or run.variant.label in opts.train_only):
+            to_train.setdefault(run.workdir, run)
+    return list(to_train.values())
+
+
+def plan_commands(exp: Experiment, opts: Options, python: str = "python") -> list[str]:
+    """One self-contained shell command per unfinished run of `exp`: any scheduler (a
+    SLURM job array, another machine) can run them, each storing its run in `opts.store`."""
+    _, runs, _ = select_runs(exp, opts, lambda _: None)
+    return [shlex.join(run_command(exp, run, opts, python)) for run in unfinished(runs, opts)]
+
+
 def train_in_processes(exp: Experiment, runs: list[Run], opts: Options, log: Log) -> None:
     """Train, evaluate and store `runs`, `opts.jobs` at a time, each in its own process on
     its share of the cores (`workers.run_pool`); raises `ExperimentError` naming the runs
     that failed and their logs."""
     def command(run: Run) -> list[str]:
-        return [sys.executable, "-m", "a2catvn_jax.experiments", exp.name, "--scale", opts.scale,
-                "--seeds", str(run.seed), "--train-only", run.variant.label, "--episodes", str(opts.episodes),
-                "--root", str(opts.root), "--store", str(opts.store), "--docs", str(opts.docs), "--no-report",
-                *(["--set", *opts.overrides] if opts.overrides else [])]
+        return run_command(exp, run, opts)
 
     logs = [run.workdir / "train.log" for run in runs]
     t0 = time.perf_counter()
@@ -167,10 +191,7 @@ def train_missing(exp: Experiment, runs: list[Run], opts: Options, log: Log) -> 
     stored, seed by seed (every variant of seed 0, then of seed 1, ...: an experiment
     stopped part-way leaves comparable seeds behind); variants with the same
     configuration share one run."""
-    to_train = {}  # work directory -> run
-    for run in sorted(runs, key=lambda r: r.seed):
-        if not run.is_stored() and (opts.train_only is None or run.variant.label in opts.train_only):
-            to_train.setdefault(run.workdir, run)
+    to_train = {run.workdir: run for run in unfinished(runs, opts)}
     if opts.jobs > 1 and to_train:
         train_in_processes(exp, list(to_train.values()), opts, log)
     for i, run in sorted(enumerate(runs), key=lambda ir: ir[1].seed):
