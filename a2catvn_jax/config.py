@@ -95,6 +95,17 @@ NonNegative = Annotated[float, Strict(), Field(ge=0)]
 Every = Annotated[int, Strict(), Field(ge=0)]  # a period in updates; 0: never
 Fraction = Annotated[float, Strict(), Field(ge=0, le=1)]
 # Lists (YAML's sequences) of a fixed length; nothing else (no string, set or scalar).
+BLIND_MODES = ("none", "both", "target", "observation")
+
+
+def _blind_mode(value: Any) -> Any:
+    """`agent.blind`'s earlier yes / no: true (YAML or --set) is "both", false is "none"."""
+    if isinstance(value, bool):
+        return "both" if value else "none"
+    return {"true": "both", "false": "none"}.get(value, value) if isinstance(value, str) else value
+
+
+Blind = Annotated[Literal[BLIND_MODES], BeforeValidator(_blind_mode)]
 Pair = Annotated[tuple[T, T], Strict(), BeforeValidator(_list_as_tuple)]
 Quad = Annotated[tuple[T, T, T, T], Strict(), BeforeValidator(_list_as_tuple)]
 
@@ -201,7 +212,7 @@ class AgentConfig(_Section):
     segmentation_loss: Literal["mse_rgb", "cross_entropy"] = "mse_rgb"  # class colours (paper) or class ids
     space_to_depth: Bool = False  # run conv1 as a conv on stride x stride pixel blocks (the same function)
     conv_impl: Literal["auto", "xla", "matmul"] = "auto"  # XLA's conv or matrix products (the same function; auto: per layer, the faster on the CPU)
-    blind: Bool = False  # the network sees observation and target images as zeros (a control)
+    blind: Blind = "none"  # controls: images of zeros for both, the target only or the observation only (true: both)
     vision_heads: Literal["upsample", "transposed"] = "upsample"  # depth / segmentation head layout
     init: Literal["lecun", "uniform_fan_in"] = "lecun"  # weight initialisation
 
@@ -278,8 +289,10 @@ class TrainConfig(_Section):
     gamma: Fraction = 0.99
     learning_rate: Positive = 7e-4
     lr_schedule: Literal["linear", "constant"] = "linear"  # linear: lr * (f_max - f) / f_max
+    lr_scaling: Literal["none", "linear", "sqrt"] = "none"  # learning_rate times B / 16 or sqrt(B / 16) (B: env.num_envs)
+    optimizer: Literal["rmsprop", "adam", "lamb"] = "rmsprop"  # after the clip: RMSprop (paper), Adam or LAMB
     rmsprop_decay: Fraction = 0.99  # RMSprop alpha
-    rmsprop_eps: Positive = 1e-5
+    rmsprop_eps: Positive = 1e-5  # the optimiser's epsilon (RMSprop's outside the square root; Adam's and LAMB's too)
     max_grad_norm: Positive = 0.5
     replay_size: Int = 2000  # replay buffer, steps per kept environment (whole rollouts are kept)
     replay_envs: Count = 256  # environments kept per rollout (a new block each time): replay_size * min(B, this) steps

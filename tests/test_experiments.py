@@ -48,7 +48,7 @@ def test_every_experiment_has_the_blind_control_of_its_task():
     blind_dirs = {}
     for exp in EXPERIMENTS.values():
         for scale in registry.SCALES:
-            controls = [r for r in st.plan(exp, scale, [0], "/r") if r.cfg.agent.blind]
+            controls = [r for r in st.plan(exp, scale, [0], "/r") if r.cfg.agent.blind == "both"]
             assert [r.variant for r in controls] == [registry.BLIND_CONTROL], exp.name
             path = exp.config_path(scale)
             assert controls[0].cfg == load_config(path, ["seed=0", "agent.blind=true"])
@@ -76,7 +76,7 @@ def test_learning_by_sight_experiments():
                                                "blind A2CAT-VN"]
     for exp in (aux, gen):
         blind = [r for r in st.plan(exp, "cpu", [0], "/r") if r.variant.label == "blind A2CAT-VN"]
-        assert len(blind) == 1 and blind[0].cfg.agent.blind
+        assert len(blind) == 1 and blind[0].cfg.agent.blind == "both"
     runs = st.plan(ablations, "cpu", [0], "/r")
     assert runs[0].workdir == st.plan(aux, "cpu", [0], "/r")[1].workdir  # the full A2CAT-VN is shared
     weights = registry.AUX_LOSSES
@@ -89,7 +89,7 @@ def test_learning_by_sight_experiments():
     sight = EXPERIMENTS["sight"]
     assert sight.config_path("cpu") == sight.config_path("paper") == CONFIGS / "quickstart.yaml"
     seeing, blind = st.plan(sight, "cpu", [0], "/r")
-    assert not seeing.cfg.agent.blind and blind.cfg.agent.blind
+    assert seeing.cfg.agent.blind == "none" and blind.cfg.agent.blind == "both"
     assert seeing.cfg == load_config(CONFIGS / "quickstart.yaml", ["seed=0"])
     aux_qs = EXPERIMENTS["aux_quickstart"]
     runs = {r.variant.label: r for r in st.plan(aux_qs, "cpu", [0], "/r")}
@@ -545,3 +545,25 @@ def test_a_stored_report_compares_with_another_experiments(trained, from_store):
     b, = [line for line in text.splitlines() if line.startswith("| b (tiny) |")]
     p = summary["variants"]["b"]["welch_p_frames_vs_first"]
     assert b.split("|")[2].strip() == ("–" if p is None else f"{p:.2g}")
+
+
+def test_plan_prints_one_self_contained_command_per_unfinished_run(tmp_path, capsys):
+    """`--plan`: a command per run neither stored nor shared with another variant; a stored
+    run drops out. Each command trains that one run (`--train-only` its label, its seed)."""
+    import shlex
+
+    store, root = tmp_path / "store", tmp_path / "root"
+    args = ["sight", "--plan", "--seeds", "7", "--store", str(store), "--root", str(root)]
+    cli.main(args)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 2
+    commands = [shlex.split(line) for line in lines]
+    assert [c[c.index("--train-only") + 1] for c in commands] == ["A2CAT-VN", "blind A2CAT-VN"]
+    assert all(c[:3] == ["python", "-m", "a2catvn_jax.experiments"] and c[c.index("--seeds") + 1] == "7"
+               and c[c.index("--store") + 1] == str(store) for c in commands)
+    seeing = st.plan(EXPERIMENTS["sight"], "cpu", [7], root, store=store)[0]
+    seeing.stored.mkdir(parents=True)
+    (seeing.stored / st.DONE).write_text("{}\n")
+    cli.main(args)
+    assert [shlex.split(line)[shlex.split(line).index("--train-only") + 1]
+            for line in capsys.readouterr().out.strip().splitlines()] == ["blind A2CAT-VN"]

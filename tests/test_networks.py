@@ -552,3 +552,23 @@ def test_the_pytorch_reference_has_the_networks_layers(preset):
         for name, out in heads.items():  # NCHW against NHWC (depth without a channel axis)
             n, ch, h, w = out.shape
             assert (n, h, w) + ((ch,) if name != "depth" else ()) == want[name], name
+
+
+def test_blind_controls_zero_what_they_name():
+    """`agent.blind`: "both" sees observation and target images as zeros, "target" only the
+    targets, "observation" only the observations; "none" sees both; true is "both"."""
+    rng = np.random.default_rng(0)
+    images = jnp.asarray(rng.integers(0, 256, (2, 16, 16, 3)), jnp.uint8)
+    zeros = jnp.zeros_like(images)
+    assert load_config(None, ["agent.blind=true"]).agent.blind == "both"
+    for mode, target_zeroed, observation_zeroed in (("none", False, False), ("both", True, True),
+                                                    ("target", True, False), ("observation", False, True)):
+        cfg = load_config(None, TINY_LEARNER + [f"agent.blind={mode}"])
+        net = networks.make_networks(cfg, 8)
+        params = net.init(jax.random.PRNGKey(0))
+        feats = net.target_stream(params, images)
+        same_target = bool(jnp.allclose(feats, net.target_stream(params, zeros)))
+        assert same_target == target_zeroed, mode
+        conv4, _ = net.encode(params, images, feats)
+        conv4_zero, _ = net.encode(params, zeros, feats)
+        assert bool(jnp.allclose(conv4, conv4_zero)) == observation_zeroed, mode

@@ -360,14 +360,15 @@ class Networks:
 
     images [N, H, W, 3] uint8; target features (what a target adds to conv3,
     `A2CATNet.target_stream`) [N, g3, g3, c3]; conv4 maps
-    [N, g, g, c4]; features [N, dense]; core outputs [N, core]. A `blind` network sees
-    every observation and target image as zeros (the control that tells whether an
-    agent uses its sight).
+    [N, g, g, c4]; features [N, dense]; core outputs [N, core]. `blind` (controls of what
+    an agent uses its sight for): "both" sees every observation and target image as
+    zeros, "target" the target images only (it sees the house, not the goal),
+    "observation" the observations only (it sees the goal, not the house).
     """
 
     module: A2CATNet
     num_actions: int
-    blind: bool = False
+    blind: str = "none"
 
     def init(self, key) -> Params:
         """Freshly initialised parameters (one compiled program per network: called
@@ -387,13 +388,13 @@ class Networks:
     def target_stream(self, params: Params, target_rgb):
         """What target images [K, H, W, 3] add to conv3: conv1, conv2 and conv3's target
         part -> [K, g3, g3, c3]."""
-        if self.blind:
+        if self.blind in ("both", "target"):
             target_rgb = jnp.zeros_like(target_rgb)
         return self.module.apply(params, target_rgb, method=A2CATNet.target_stream)
 
     def encode(self, params: Params, rgb, target_features):
         """Observations [N, H, W, 3] and their targets' stream features -> (conv4 maps, features)."""
-        if self.blind:
+        if self.blind in ("both", "observation"):
             rgb = jnp.zeros_like(rgb)
         return self.module.apply(params, rgb, target_features, method=A2CATNet.encode)
 

@@ -24,7 +24,7 @@ NO_VN = ("train.loss_weights.depth=0", "train.loss_weights.segmentation=0", "tra
 NO_RP = "train.loss_weights.reward_prediction=0"
 NO_UNREAL = ("train.loss_weights.off_policy_critic=0", "train.loss_weights.pixel_control=0", NO_RP)
 CLIP_40 = "train.max_grad_norm=40"  # above every gradient norm measured on the house task
-BLIND = ("agent.blind=true",)
+BLIND = ("agent.blind=true",)  # agent.blind=both
 # The loss and replay settings of the authors' published code where they differ from the
 # defaults (docs/method.md), and their network (configs/presets/authors_network.yaml; its
 # convolutions padded, which the 32 px CPU tasks need).
