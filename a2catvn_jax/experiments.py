@@ -1,8 +1,9 @@
 """Comparisons of the method's variants: train with several seeds, evaluate, store, plot, tabulate.
 
     python -m a2catvn_jax.experiments NAME [--scale cpu|paper] [--seeds 0 1 2 3 4 | --stored-seeds | --all-stored]
-        [--episodes 100] [--threshold T] [--root runs/experiments] [--store results]
-        [--docs docs] [--skip-missing] [--jobs N] [--set KEY=VALUE ...]
+        [--episodes 500] [--threshold T] [--root runs/experiments] [--store results]
+        [--docs docs] [--skip-missing | --no-evaluate] [--jobs N] [--set KEY=VALUE ...]
+    python -m a2catvn_jax.experiments NAME --stored-seeds --no-evaluate [--scale ...] [--store DIR] [--docs DIR]
     python -m a2catvn_jax.experiments NAME --plan [--seeds ...] [--root DIR] [--store DIR] [--set KEY=VALUE ...]
     python -m a2catvn_jax.experiments --list [NAME ...] [--scale cpu|paper] [--store DIR]
     python -m a2catvn_jax.experiments --compare EXPERIMENT:LABEL EXPERIMENT:LABEL [...] [--scale cpu|paper]
@@ -35,9 +36,11 @@ under its run key, a hash of the configuration's values that differ from the def
 (`study.store.run_key`: a configuration key added with its default renames no run), so a
 variant shared by two experiments (e.g. A2CAT-VN in `aux` and `ablations`) is trained
 once. Pre-trained variants first run `pretrain` with the same seed. Each run is
-evaluated with the sampled policy in its training houses, with new targets in them and
-in held-out houses (`evaluate --houses`); a uniformly random policy and the
-shortest-path oracle, which need no training, are evaluated in the same houses.
+evaluated with the sampled policy and with its argmax (greedy) in its training houses,
+with new targets in them and in held-out houses (`evaluate --houses`), `--episodes`
+episodes each (default 500) with the evaluation seed 1000 + the run's seed; a uniformly
+random policy and the shortest-path oracle, which need no training, are evaluated in the
+same houses with seed 999.
 
 Runs as data: a finished, evaluated run is copied to the store (default `results/`),
 `STORE/SCALE/CONFIG/RUN_KEY/seed_N/` (config.yaml, variant.json, metrics.jsonl with the
@@ -53,8 +56,13 @@ trains nothing. `--jobs N` trains N runs at once, each in its own process pinned
 share of the CPU cores (its log in `train.log` in the run's directory under ROOT): on a
 CPU with few cores a small run leaves cores idle, so runs side by side finish sooner in
 all (docs/benchmarks.md); on one GPU keep 1. An evaluation a stored run lacks (another
-`--episodes`) needs that run's checkpoint in ROOT; without it the command stops with an
-error naming the run, unless `--skip-missing` leaves those numbers out. `--list` shows
+`--episodes` or seed, the greedy policy) needs that run's checkpoint in ROOT; without it
+the command stops with an error naming the run, unless `--skip-missing` reports the
+stored evaluation of that run, house set and policy with the most episodes instead (or
+leaves the number out when none is stored); the section says which episodes and seeds
+each number rests on. `--no-evaluate` trains and evaluates nothing, runs or baselines,
+and reports the store so: `NAME --stored-seeds --no-evaluate` re-tabulates an
+experiment from the store alone. `--list` shows
 how many seeds of each variant are stored. `--compare` sets variants of different
 experiments side by side from their stored reports (`study.compare`: frames to
 threshold, final and evaluation success, the logged gradient norms against each run's
@@ -65,10 +73,14 @@ against frames: the mean over seeds, shaded with its 95% t-band; the threshold a
 baselines as horizontal lines), `STORE/SCALE/NAME.json` (every number, per seed), and
 a section of `DOCS/results.md` between the markers `<!-- experiment NAME SCALE -->`
 and `<!-- end experiment NAME SCALE -->` (rewritten on each run; text outside the
-markers is kept) with the command, where and when the runs were trained, and a table
-of means over seeds with 95% t-intervals: frames until the smoothed training success
-rate first reaches the experiment's threshold (and how many runs never do), final
-training success, evaluation success and SPL, and the baselines' rows.
+markers is kept) with the command, where and when the runs were trained, the
+evaluations each number rests on, a table of means over seeds with 95% t-intervals:
+frames until the smoothed training success rate first reaches the experiment's
+threshold (and how many runs never do), its Kaplan-Meier restricted mean (runs that never
+reach it censored at their last frame), final training success, evaluation success and
+SPL, and the baselines' rows; a table of evaluation success with both policies, over
+seeds (t-interval) and over all episodes pooled (Wilson's interval); Welch's and
+log-rank tests against the first variant.
 """
 
 from __future__ import annotations
@@ -100,7 +112,8 @@ def main(argv=None) -> None:
     seeds.add_argument("--all-stored", action="store_true",
                        help="every stored run, however many seeds each variant has (a part-way report; "
                             "variants with none stored are left out); trains nothing")
-    parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes per run and set")
+    parser.add_argument("--episodes", type=int, default=runner.DEFAULT_EPISODES,
+                        help="evaluation episodes per run, house set and policy (default: %(default)s)")
     parser.add_argument("--threshold", type=float, default=None,
                         help="training success rate for 'frames to threshold' (default: the experiment's, per scale)")
     parser.add_argument("--root", default=str(store.DEFAULT_ROOT),
@@ -108,8 +121,13 @@ def main(argv=None) -> None:
     parser.add_argument("--store", default=str(store.DEFAULT_STORE),
                         help="where finished runs are stored, to commit (default: %(default)s)")
     parser.add_argument("--docs", default="docs", help="where results.md and the plots go")
-    parser.add_argument("--skip-missing", action="store_true",
-                        help="leave out evaluations that a stored run lacks and whose checkpoint is not here")
+    evaluations = parser.add_mutually_exclusive_group()
+    evaluations.add_argument("--skip-missing", action="store_true",
+                             help="an evaluation a stored run lacks and whose checkpoint is not here: report the "
+                                  "stored one with the most episodes instead (the section says so), or leave it out")
+    evaluations.add_argument("--no-evaluate", action="store_true",
+                             help="train and evaluate nothing (runs or baselines): report what the store holds, "
+                                  "falling back as --skip-missing does")
     parser.add_argument("--train-only", nargs="+", metavar="LABEL", default=None,
                         help="train only these variants (labels as --list shows them); the report waits until "
                              "every run is stored")
@@ -129,9 +147,10 @@ def main(argv=None) -> None:
     if args.compare is not None:
         given = [option for option, used in (
             ("NAME", args.name), ("--list", args.list), ("--seeds", args.seeds != list(runner.DEFAULT_SEEDS)),
-            ("--stored-seeds", args.stored_seeds), ("--all-stored", args.all_stored), ("--episodes", args.episodes != 100),
-            ("--threshold", args.threshold is not None), ("--train-only", args.train_only is not None),
-            ("--skip-missing", args.skip_missing), ("--jobs", args.jobs != 1), ("--set", cli.overrides_of(args)))
+            ("--stored-seeds", args.stored_seeds), ("--all-stored", args.all_stored),
+            ("--episodes", args.episodes != runner.DEFAULT_EPISODES), ("--threshold", args.threshold is not None),
+            ("--train-only", args.train_only is not None), ("--skip-missing", args.skip_missing),
+            ("--no-evaluate", args.no_evaluate), ("--jobs", args.jobs != 1), ("--set", cli.overrides_of(args)))
             if used]
         if given:
             parser.error(f"--compare reads the stored reports as they are; it takes no {', '.join(given)} "
@@ -166,7 +185,7 @@ def main(argv=None) -> None:
                                   docs=args.docs, store=args.store, overrides=cli.overrides_of(args),
                                   command=command.strip(), threshold=args.threshold, skip_missing=args.skip_missing,
                                   train_only=args.train_only, jobs=args.jobs, report=not args.no_report,
-                                  stored_only=args.all_stored)
+                                  stored_only=args.all_stored, evaluate=not args.no_evaluate)
             if args.plan:
                 print("\n".join(runner.plan_commands(exp, opts)))
                 return

@@ -95,6 +95,20 @@ def test_runs_of_different_lengths_are_noted(tmp_path):
     assert "The runs differ in length (slow (ea) 3.0M, fast (eb) 5.0M frames)" in text
 
 
+def test_the_episodes_the_numbers_rest_on_are_noted(tmp_path):
+    """A report that fell back on stored evaluations records the episodes its numbers rest
+    on ("episodes_used") beside those asked for ("episodes"); the comparison goes by the former."""
+    write_store(tmp_path)
+    for name, asked, used in (("ea", 500, [100]), ("eb", 500, [500])):
+        path = tmp_path / "cpu" / f"{name}.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "episodes": asked, "episodes_used": used}))
+    text = compare.compare(["ea:slow", "eb:fast"], "cpu", tmp_path)
+    assert "over different numbers of episodes (ea: 100, eb: 500)" in text
+    path = tmp_path / "cpu" / "ea.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "episodes_used": [500]}))
+    assert "different numbers of episodes" not in compare.compare(["ea:slow", "eb:fast"], "cpu", tmp_path)
+
+
 @pytest.mark.parametrize("args, message", [
     (["ea:slow"], "at least two variants"),
     (["ea:slow", "eb"], "name a variant as EXPERIMENT:LABEL"),
@@ -102,7 +116,8 @@ def test_runs_of_different_lengths_are_noted(tmp_path):
     (["ea:slow", "ea:fast"], "ea has no reported variant 'fast'; its variants: 'slow', 'other: b'"),
     (["ea:slow", "eb:fast", "--scale", "paper"], "no stored summary of 'ea' at paper scale"),
     (["aux:A2C", "ea:slow", "--scale", "paper"], "report it first: python -m a2catvn_jax.experiments aux "
-                                                 "--stored-seeds --scale paper --store"),
+                                                 "--stored-seeds --no-evaluate --scale paper --store"),
+    (["ea:slow", "eb:fast", "--no-evaluate"], "it takes no --no-evaluate"),
     (["ea:slow", "eb:fast", "--threshold", "0.9"], "it takes no --threshold"),
     (["ea:slow", "eb:fast", "--seeds", "0", "--set", "seed=1"], "it takes no --seeds, --set"),
     (["ea:slow", "eb:fast", "--stored-seeds"], "it takes no --stored-seeds"),

@@ -289,18 +289,32 @@ def test_tiny_experiment_trains_stores_and_reports(trained):
     store = root / "store"
     for rel in a["runs"] + summary["variants"]["b"]["runs"]:
         d = store / rel
-        assert {p.name for p in d.iterdir()} == {"config.yaml", "variant.json", "metrics.jsonl", "eval_train_sample_2.json",
-                                                 "experiment_time.json", "done.json"}
+        seed = int(rel.rsplit("_", 1)[1])  # every policy is evaluated with the seed 1000 + the run's seed
+        evals = {f"eval_train_{policy}_2_seed{1000 + seed}.json": policy for policy in ("sample", "greedy")}
+        assert {p.name for p in d.iterdir()} == {"config.yaml", "variant.json", "metrics.jsonl", "experiment_time.json",
+                                                 "done.json", *evals}
+        for name, policy in evals.items():
+            result = json.loads((d / name).read_text())
+            assert (result["policy"], result["seed"], result["episodes"]) == (policy, 1000 + seed, 2)
         done = json.loads((d / "done.json").read_text())
         assert done["updates"] == 2 and done["frames"] == 32 and done["machine"] and done["date"]
         assert set(json.loads((d / "metrics.jsonl").read_text().splitlines()[0])) <= set(st.STORED_COLUMNS)
     baselines = {p.name.rsplit("_", 1)[0] for p in (store / "cpu" / "image_goals" / "baselines").iterdir()}
-    assert baselines == {"random_train_2", "oracle_train_2"}
+    assert baselines == {"random_train_2_seed999", "oracle_train_2_seed999"}
+    assert summary["baselines"]["random"]["train"]["seed"] == 999
+    for key in ("eval", "eval_greedy"):
+        e = a[key]["train"]
+        assert e["eval_seed"] == [1000, 1001] and e["episodes"] == [2, 2]
+        assert e["pooled"]["episodes"] == 4 and e["pooled"]["successes"] == sum(e["successes"])
     assert json.loads((store / "cpu" / "tiny.json").read_text())["variants"]["b"]["eval"] == summary["variants"]["b"]["eval"]
     assert (root / "docs" / "experiments" / "tiny_cpu.png").stat().st_size > 0
     assert "<!-- experiment tiny cpu -->" in text and "| b |" in text
     assert "| uniformly random policy | – | – |" in text and "| shortest-path oracle | – | – |" in text
     assert "95% t-interval" in text and "Seeds: 0, 1 (2 runs per variant)" in text
+    assert "| a | greedy | " in text and "| a | sampled | " in text and "Wilson's 95% score interval" in text
+    assert ("Evaluation at complexity 1: sampled policy: 2 episodes per run and house set, seed 1000 + the run's seed; "
+            "greedy policy: 2 episodes per run and house set, seed 1000 + the run's seed; baselines: 2 episodes, "
+            "seed 999.") in text
 
 
 def test_listing_counts_stored_seeds(trained, monkeypatch, capsys):
@@ -327,7 +341,8 @@ def test_store_alone_reproduces_the_results(trained, from_store):
 
 def test_missing_evaluation_needs_the_checkpoint(trained, from_store, monkeypatch, capsys):
     root = trained[0]
-    with pytest.raises(ExperimentError, match=r"a, seed 0 .*eval_train_sample_2.json.*final checkpoint"):
+    with pytest.raises(ExperimentError, match=r"a, seed 0 .*3 episodes, seed 1000 .*eval_train_sample_2_seed1000.json"
+                                              r".*final checkpoint"):
         run_tiny(root, episodes=3)
     monkeypatch.setitem(EXPERIMENTS, "tiny", tiny())
     with pytest.raises(SystemExit) as exit_info:
@@ -336,11 +351,17 @@ def test_missing_evaluation_needs_the_checkpoint(trained, from_store, monkeypatc
     assert exit_info.value.code == 2
     errors = capsys.readouterr().err.strip().splitlines()
     assert len(errors) == 1 and errors[0].startswith("error: a, seed 0 (")
+    # --skip-missing: the stored evaluations of 2 episodes, said to be so, not the 3 asked for
     summary, lines = run_tiny(root, episodes=3, skip_missing=True)
-    assert summary["variants"]["a"]["eval"]["train"]["success_rate"] == [None, None]
-    assert any(line.startswith("skipped: a, seed 0") for line in lines)
+    stored = from_store[0]["variants"]["a"]
+    for key in ("eval", "eval_greedy"):
+        assert summary["variants"]["a"][key]["train"]["success_rate"] == stored[key]["train"]["success_rate"]
+        assert summary["variants"]["a"][key]["train"]["episodes"] == [2, 2]
+    assert "no checkpoint for the 3 episodes with seed 1000 asked for: a, seed 0: train sample, train greedy: " \
+           "stored 2 episodes, seed 1000" in lines
     section = (root / "docs" / "results.md").read_text()
-    assert "| a | " in section and "| – | – |" in section
+    assert ("sampled policy: 2 episodes per run and house set, seed 1000 + the run's seed (stored evaluations, "
+            "reported instead of the 3 episodes, seed 1000 + the run's seed asked for") in section
     assert summary["variants"]["a"]["final_success"] == from_store[0]["variants"]["a"]["final_success"]
 
 
@@ -567,3 +588,160 @@ def test_plan_prints_one_self_contained_command_per_unfinished_run(tmp_path, cap
     cli.main(args)
     assert [shlex.split(line)[shlex.split(line).index("--train-only") + 1]
             for line in capsys.readouterr().out.strip().splitlines()] == ["blind A2CAT-VN"]
+
+
+def test_the_navigation_experiment_has_the_target_and_observation_blind_controls():
+    nav = EXPERIMENTS["navigation"]
+    assert [v.label for v in nav.variants] == [
+        "A2CAT-VN", "A2CAT-VN, clip 40", "A2CAT-VN without reward prediction", "blind A2CAT-VN",
+        "target-blind A2CAT-VN", "observation-blind A2CAT-VN"]
+    runs = {r.variant.label: r for r in st.plan(nav, "cpu", [0], "/r")}
+    assert runs["target-blind A2CAT-VN"].cfg.agent.blind == "target"
+    assert runs["observation-blind A2CAT-VN"].cfg.agent.blind == "observation"
+    assert runs["blind A2CAT-VN"].cfg.agent.blind == "both"
+    generalisation = {r.variant.label: r.workdir for r in st.plan(EXPERIMENTS["generalisation"], "cpu", [0], "/r")}
+    assert runs["A2CAT-VN"].workdir == generalisation["A2CAT-VN"]  # the stored runs are kept
+    assert runs["blind A2CAT-VN"].workdir == generalisation["blind A2CAT-VN"]
+
+
+def _result(successes, seed, episodes=None, spl=0.1):
+    episodes = len(successes) if episodes is None else episodes
+    return {"success_rate": sum(successes) / episodes, "spl": spl, "episodes": episodes, "seed": seed,
+            "per_episode": {"success": list(successes)}}
+
+
+def test_summary_censors_frames_to_threshold_and_pools_episodes():
+    """`summarise` on hand-made records: frames to threshold of the runs that never reach
+    it censored at their own last frame (restricted mean up to the shortest run's, log-rank
+    against the first variant), both policies' evaluations pooled over episodes; and the
+    section's tables and tests from it."""
+    a, b = Variant("a"), Variant("b", ("train.max_grad_norm=40",))
+    exp = registry.Experiment("syn", "hand-made", "image_goals", (a, b), evaluations=("train", "held-out"))
+
+    def log(rates):  # 10 rows or more: no smoothing (a running mean over 1 row)
+        return [{"frames": 1e5 * (i + 1), "success_rate": r} for i, r in enumerate(rates)]
+
+    def evals(seed, greedy_seed=None, greedy_episodes=None):
+        return {"sample": {"train": _result([True, False, True, True], 1000 + seed),
+                           "held-out": _result([False, False, True, False], 1000 + seed)},
+                "greedy": {"train": _result([True] * 3 + [False] * (greedy_episodes or 1),
+                                            1000 + seed if greedy_seed is None else greedy_seed),
+                           "held-out": None}}
+
+    done = {"date": "2026-01-01T00:00:00+00:00", "machine": "m", "git": None}
+    records = [
+        stats.RunRecord(a, 0, "a0", log([0.0, 0.2, 0.6] + [0.7] * 7), evals(0), 60.0, done),  # reaches at 300k
+        stats.RunRecord(a, 1, "a1", log([0.1] * 10), evals(1), 60.0, done),  # censored at 1M
+        stats.RunRecord(b, 0, "b0", log([0.0] * 6 + [0.5] * 4), evals(0), 60.0, done),  # reaches at 700k
+        stats.RunRecord(b, 1, "b1", log([0.2] * 12), evals(1, greedy_seed=0, greedy_episodes=5), 60.0, done),
+    ]
+    base = {"random": {"train": _result([True] + [False] * 9, 999), "held-out": _result([False] * 10, 999)},
+            "oracle": {"train": _result([True] * 10, 999), "held-out": _result([True] * 9 + [False], 999)}}
+    summary = stats.summarise(exp, records, base, 0.5)
+    va, vb = summary["variants"]["a"], summary["variants"]["b"]
+    assert summary["rmst_horizon"] == 1e6 and vb["frames_last"] == [1e6, 1.2e6]
+    assert va["frames_to_threshold"] == [3e5, None] and vb["frames_to_threshold"] == [7e5, None]
+    assert va["rmst_frames"] == stats.restricted_mean([3e5, 1e6], [True, False], 1e6)
+    # a: S = 1 up to 300k, then 1/2 to the horizon: 300k + 700k / 2
+    assert va["rmst_frames"]["mean"] == pytest.approx(6.5e5)
+    assert vb["rmst_frames"] == stats.restricted_mean([7e5, 1.2e6], [True, False], 1e6)
+    assert vb["logrank_p_frames_vs_first"] == pytest.approx(
+        stats.logrank_p([3e5, 1e6], [True, False], [7e5, 1.2e6], [True, False]))
+    # Welch's test keeps counting a run that never reaches it at the variant's longest run
+    assert vb["welch_p_frames_vs_first"] == pytest.approx(stats.welch_p([3e5, 1e6], [7e5, 1.2e6]))
+    held = va["eval"]["held-out"]
+    assert held["successes"] == [1, 1] and held["eval_seed"] == [1000, 1001]
+    assert held["pooled"] == stats.pooled_success([1, 1], [4, 4])
+    greedy = vb["eval_greedy"]
+    assert greedy["train"]["episodes"] == [4, 8] and greedy["train"]["pooled"]["successes"] == 6
+    assert greedy["held-out"]["success_rate"] == [None, None] and greedy["held-out"]["pooled"] is None
+    assert vb["welch_p_eval_greedy_success_vs_first"]["train"] == pytest.approx(
+        stats.welch_p([0.75, 0.75], [0.75, 3 / 8]))
+
+    summary.update(scale="cpu", episodes=4, eval_seed_offset=1000, baseline_eval_seed=999, max_episode_steps=10,
+                   not_stored=[])
+    text = report.section(exp, "cpu", summary, "cmd", "img.png")
+    row_a, = [line for line in text.splitlines() if line.startswith("| a | 300k, 1/2 reached; 1 not by 1.0M |")]
+    assert f"| {report.format_rmst(va['rmst_frames'])} |" in row_a
+    greedy_b, = [line for line in text.splitlines() if line.startswith("| b | greedy |")]
+    assert f"| {report.format_pooled(greedy['train']['pooled'], 2)} |" in greedy_b and greedy_b.endswith("| – | – | – |")
+    assert "| shortest-path oracle | – | – | 1.00 [0.72, 1.00] | 0.10 | – | 0.90 [0.60, 0.98] | 0.10 |" in text
+    p = vb["logrank_p_frames_vs_first"]
+    assert (f"Log-rank test on frames to threshold against a, a run that never reaches it censored at its last "
+            f"frame: b p = {p:.2g}.") in text
+    assert "Welch's t-test on evaluation success (training houses, greedy) against a: b p = " in text
+    # b, seed 1's greedy evaluation used another seed and more episodes: the section says which
+    assert ("greedy policy, evaluations that differ (asked for: 4 episodes, seed 1000 + the run's seed): a, training "
+            "houses: seeds 0, 1 4 episodes, seed 1000 + the run's seed; b, training houses: seed 0 4 episodes, seed "
+            "1000 + the run's seed, seed 1 8 episodes, seed 0; 4 of 8 evaluations (runs x house sets) not stored, "
+            "left out") in text
+    assert "sampled policy: 4 episodes per run and house set, seed 1000 + the run's seed; " in text
+    assert "baselines: 10 episodes, seed 999 (stored, reported instead of the 4 episodes with seed 999 asked for)" in text
+
+
+def test_a_report_from_the_store_falls_back_on_older_evaluations_and_says_so(trained, from_store, tmp_path,
+                                                                             monkeypatch, capsys):
+    """Runs stored before the evaluation seed (their files named without it, seed 0 inside)
+    and without greedy evaluations: the evaluation asked for is not taken from them; the
+    command stops without --skip-missing or --no-evaluate, and with --no-evaluate reports
+    them, evaluating nothing, saying what each number rests on."""
+    store = tmp_path / "store"
+    shutil.copytree(trained[0] / "store", store)
+    runs = {(r.variant.label, r.seed): r for r in st.plan(tiny(), "cpu", [0, 1], tmp_path / "runs", TINY, store)}
+    for seed in (0, 1):  # "a" (and "a again", the same runs) as stored before: seed 0, no greedy evaluation
+        d = runs[("a", seed)].stored
+        result = json.loads((d / f"eval_train_sample_2_seed{1000 + seed}.json").read_text())
+        (d / f"eval_train_sample_2_seed{1000 + seed}.json").unlink()
+        (d / f"eval_train_greedy_2_seed{1000 + seed}.json").unlink()
+        (d / "eval_train_sample_2.json").write_text(json.dumps({**result, "seed": 0}))
+    # a file named for the seed asked for that holds another seed's evaluation is not taken for it
+    misnamed = runs[("b", 0)].stored / "eval_train_sample_2_seed1000.json"
+    misnamed.write_text(json.dumps({**json.loads(misnamed.read_text()), "seed": 7}))
+    assert st.saved_evaluations(runs[("b", 0)], ["train"], 2, "sample") == {}
+    assert st.saved_evaluations(runs[("a", 0)], ["train"], 2, "sample") == {}
+    assert st.saved_evaluations(runs[("a", 0)], ["train"], 2, "sample", seed=0)["train"]["seed"] == 0
+    baselines = store / "cpu" / "image_goals" / "baselines"
+    for other in baselines.glob("*.json"):  # those of other tests' episode counts
+        if not other.name.startswith(("random_train_2_", "oracle_train_2_")):
+            other.unlink()
+    random_file, = baselines.glob("random_train_2_seed999_*.json")
+    random_file.rename(baselines / random_file.name.replace("_seed999", ""))  # the random policy's, as stored before
+    (baselines / random_file.name.replace("_seed999", "")).write_text(
+        json.dumps({**json.loads((baselines / random_file.name.replace("_seed999", "")).read_text()), "seed": 0}))
+
+    monkeypatch.setitem(EXPERIMENTS, "tiny", tiny())
+    where = ["--episodes", "2", "--docs", str(tmp_path / "docs"), "--store", str(store), "--root",
+             str(tmp_path / "runs"), "--set", *TINY]
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["tiny", "--stored-seeds", *where])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a, seed 0 (" in err[0] and "2 episodes, seed 1000" in err[0] and "--no-evaluate" in err[0]
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["tiny", "--stored-seeds", "--skip-missing", "--no-evaluate", *where])
+    assert exit_info.value.code == 2
+
+    def never(*args, **kwargs):
+        pytest.fail("evaluated")
+
+    monkeypatch.setattr(runner, "evaluate_sets", never)
+    monkeypatch.setattr(runner, "evaluate_baseline", never)
+    cli.main(["tiny", "--stored-seeds", "--no-evaluate", *where])
+    out = capsys.readouterr().out
+    assert not trained_runs(out.splitlines()) and "evaluating" not in out
+    summary = json.loads((store / "cpu" / "tiny.json").read_text())
+    a, b = summary["variants"]["a"], summary["variants"]["b"]
+    assert a["eval"]["train"]["eval_seed"] == [0, 0]
+    assert a["eval"]["train"]["success_rate"] == from_store[0]["variants"]["a"]["eval"]["train"]["success_rate"]
+    assert a["eval_greedy"]["train"]["success_rate"] == [None, None]
+    assert b["eval"]["train"]["eval_seed"] == [7, 1001] and b["eval_greedy"]["train"]["eval_seed"] == [1000, 1001]
+    assert summary["baselines"]["random"]["train"]["seed"] == 0 and summary["baselines"]["oracle"]["train"]["seed"] == 999
+    text = (tmp_path / "docs" / "results.md").read_text()
+    assert ("sampled policy, evaluations that differ (asked for: 2 episodes, seed 1000 + the run's seed): a, training "
+            "houses: seeds 0, 1 2 episodes, seed 0; b, training houses: seed 0 2 episodes, seed 7, seed 1 2 episodes, "
+            "seed 1000 + the run's seed; a again, training houses: seeds 0, 1 2 episodes, seed 0") in text
+    assert ("greedy policy: 2 episodes per run and house set, seed 1000 + the run's seed; 4 of 6 evaluations "
+            "(runs x house sets) not stored, left out") in text
+    assert ("baselines, evaluations that differ (asked for: 2 episodes, seed 999): uniformly random policy, training "
+            "houses: 2 episodes, seed 0; shortest-path oracle, training houses: 2 episodes, seed 999") in text
+    assert "| a | greedy | – | – | – |" in text

@@ -69,7 +69,8 @@ def _read_summary(path: Path) -> dict:
 
 def load_variants(specs: Sequence[str], scale: str = "cpu", store=DEFAULT_STORE) -> list[dict]:
     """The stored summary entry of each `EXPERIMENT:LABEL` in `specs`, with "experiment",
-    "label", "threshold" and "episodes" added. Raises `CompareError` naming what is
+    "label", "threshold" and "episodes" (the evaluation episodes its numbers rest on,
+    "episodes_used", where the summary records them; else those asked for) added. Raises `CompareError` naming what is
     missing, and when the reports' success thresholds differ."""
     if len(specs) < 2:
         raise CompareError(f"compare needs at least two variants, got {len(specs)}")
@@ -80,7 +81,8 @@ def load_variants(specs: Sequence[str], scale: str = "cpu", store=DEFAULT_STORE)
         if name not in summaries:
             path = store / scale / f"{name}.json"
             if not path.is_file():
-                hint = (f"report it first: python -m a2catvn_jax.experiments {name} --stored-seeds --scale {scale}"
+                hint = (f"report it first: python -m a2catvn_jax.experiments {name} --stored-seeds --no-evaluate "
+                        f"--scale {scale}"
                         + ("" if store == Path(DEFAULT_STORE) else f" --store {store}")
                         if name in EXPERIMENTS else "experiments: " + ", ".join(EXPERIMENTS))
                 raise CompareError(f"no stored summary of {name!r} at {scale} scale ({path}); {hint}")
@@ -89,8 +91,10 @@ def load_variants(specs: Sequence[str], scale: str = "cpu", store=DEFAULT_STORE)
         if label not in summary["variants"]:
             raise CompareError(f"{name} has no reported variant {label!r}; its variants: "
                                + ", ".join(map(repr, summary["variants"])))
+        used = summary.get("episodes_used")  # what the numbers rest on, where the runner recorded it
+        episodes = summary.get("episodes") if not used else used[0] if len(used) == 1 else " or ".join(map(str, used))
         out.append({**summary["variants"][label], "experiment": name, "label": label,
-                    "threshold": summary["threshold"], "episodes": summary.get("episodes")})
+                    "threshold": summary["threshold"], "episodes": episodes})
     if len({v["threshold"] for v in out}) > 1:
         raise CompareError("the variants' reports use different success thresholds ("
                            + ", ".join(f"{v['experiment']}: {v['threshold']:g}" for v in out)

@@ -1,7 +1,9 @@
 """An experiment's report: its figure, its tables and its section of docs/results.md.
 
-`plot` draws the learning curves of a summary (`stats.summarise`), `table` and
-`section` write its markdown, `write_section` puts a section between its markers in
+`plot` draws the learning curves of a summary (`stats.summarise`), `table` (training and
+sampled evaluation), `evaluation_table` (both policies, seed- and episode-level
+intervals), `evaluation_basis` (the episodes and seeds each evaluation number rests on)
+and `section` write its markdown, `write_section` puts a section between its markers in
 results.md, and `listing` counts the seeds stored for each variant. The number formats
 (`format_estimate`, `format_frames`, `seeds_text`) are shared with `compare`.
 """
@@ -21,8 +23,11 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import EngFormatter
 
 from a2catvn_jax.study.registry import BASELINE_LABELS, EVAL_SETS, EXPERIMENTS, SCALES, Experiment
-from a2catvn_jax.study.stats import FINAL_FRACTION, SMOOTH_FRACTION, estimate
-from a2catvn_jax.study.store import BASELINE_DIR, DEFAULT_STORE, DONE, plan, stored_runs
+from a2catvn_jax.study.stats import FINAL_FRACTION, SMOOTH_FRACTION, episode_successes, estimate, pooled_success
+from a2catvn_jax.study.store import BASELINE_DIR, DEFAULT_STORE, DONE, LEGACY_EVAL_SEED, plan, stored_runs
+
+POLICY_NAMES = {"sample": "sampled", "greedy": "greedy"}
+EVAL_KEYS = {"sample": "eval", "greedy": "eval_greedy"}  # where a summary's variant keeps each policy's numbers
 
 
 def frames_text(value: float) -> str:
@@ -41,6 +46,25 @@ def format_frames(per_run: Sequence[Optional[float]], f_max: float) -> str:
         return f"0/{n} reached by {frames_text(f_max)}"
     text = f"{estimate(reached, 0.0, f_max).format(frames_text)}, {k}/{n} reached"
     return text if k == n else f"{text}; {n - k} not by {frames_text(f_max)}"
+
+
+def format_rmst(rmst: Optional[dict]) -> str:
+    """A restricted mean time to threshold: `2.1M [1.6M, 2.6M]`; the horizon itself when no
+    run reaches the threshold before it."""
+    if rmst is None:
+        return "–"
+    if rmst["events"] == 0:
+        return f"{frames_text(rmst['horizon'])} (none reached)"
+    return f"{frames_text(rmst['mean'])} [{frames_text(rmst['low'])}, {frames_text(rmst['high'])}]"
+
+
+def format_pooled(pooled: Optional[dict], runs: Optional[int] = None) -> str:
+    """Success over pooled episodes with Wilson's interval: `0.41 [0.38, 0.44]`; `(n=k)`
+    when only k of `runs` runs have it; – without any."""
+    if pooled is None:
+        return "–"
+    text = f"{pooled['rate']:.2f} [{pooled['low']:.2f}, {pooled['high']:.2f}]"
+    return text if runs is None or pooled["runs"] == runs else f"{text} (n={pooled['runs']})"
 
 
 def reference_houses(summary: dict) -> Optional[str]:
@@ -103,24 +127,120 @@ def format_estimate(values, lo: float = 0.0, hi: float = 1.0, fmt: Callable[[flo
 def table(summary: dict, evaluations: Sequence[str]) -> str:
     """The markdown table of a summary: per variant, the mean over seeds and its 95%
     t-interval; then the baselines' evaluation numbers."""
-    head = ["variant", f"frames to success {summary['threshold']:g}", "final training success",
-            f"change over the last {FINAL_FRACTION:.0%}"]
+    threshold = summary["threshold"]
+    head = ["variant", f"frames to success {threshold:g}",
+            f"restricted mean frames to {threshold:g}, up to {frames_text(summary['rmst_horizon'])}",
+            "final training success", f"change over the last {FINAL_FRACTION:.0%}"]
     for h in evaluations:
         head += [f"success, {EVAL_SETS[h]}", f"SPL, {EVAL_SETS[h]}"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for label, v in summary["variants"].items():
-        cells = [label, format_frames(v["frames_to_threshold"], v["frames_max"]), format_estimate(v["final_success"]),
-                 format_estimate(v["late_change"], -1.0, 1.0, "{:+.2f}".format)]
+        cells = [label, format_frames(v["frames_to_threshold"], v["frames_max"]), format_rmst(v.get("rmst_frames")),
+                 format_estimate(v["final_success"]), format_estimate(v["late_change"], -1.0, 1.0, "{:+.2f}".format)]
         for h in evaluations:
             cells += [format_estimate(v["eval"][h]["success_rate"]), format_estimate(v["eval"][h]["spl"])]
         lines.append("| " + " | ".join(cells) + " |")
     for policy, label in BASELINE_LABELS.items():
-        cells = [label, "–", "–", "–"]
+        cells = [label, "–", "–", "–", "–"]
         for h in evaluations:
             r = summary["baselines"].get(policy, {}).get(h)
             cells += ["–", "–"] if r is None else [f"{r['success_rate']:.2f}", f"{r['spl']:.2f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _baseline_pooled(result: dict) -> dict:
+    return pooled_success([episode_successes(result)], [result["episodes"]])
+
+
+def evaluation_table(summary: dict, evaluations: Sequence[str]) -> str:
+    """Evaluation success with each policy: per variant and policy, the mean over seeds
+    with its t-interval, success over all episodes pooled across seeds with Wilson's
+    interval, and SPL; then the baselines (one evaluation each: Wilson's interval)."""
+    head = ["variant", "policy"]
+    for h in evaluations:
+        head += [f"success, {EVAL_SETS[h]}: seeds", f"success, {EVAL_SETS[h]}: episodes", f"SPL, {EVAL_SETS[h]}"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for label, v in summary["variants"].items():
+        for policy, key in EVAL_KEYS.items():
+            cells = [label, POLICY_NAMES[policy]]
+            for h in evaluations:
+                e = v.get(key, {}).get(h) or {}
+                values = e.get("success_rate", [None] * len(v["seeds"]))
+                cells += [format_estimate(values), format_pooled(e.get("pooled"), len(v["seeds"])),
+                          format_estimate(e.get("spl", values))]
+            lines.append("| " + " | ".join(cells) + " |")
+    for policy, label in BASELINE_LABELS.items():
+        cells = [label, "–"]
+        for h in evaluations:
+            r = summary["baselines"].get(policy, {}).get(h)
+            cells += ["–", "–", "–"] if r is None else ["–", format_pooled(_baseline_pooled(r)), f"{r['spl']:.2f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _basis_text(key: tuple, offset: Optional[int]) -> str:
+    episodes, seed = key
+    return f"{episodes} episodes, " + (f"seed {offset} + the run's seed" if seed == "asked" else f"seed {seed}")
+
+
+def evaluation_basis(summary: dict, evaluations: Sequence[str]) -> str:
+    """What every evaluation number rests on, in words: per policy, the episodes and
+    seeds of the runs' evaluations (per variant, house set and seed where they differ),
+    and whether they are the ones asked for or stored ones reported instead; then the
+    baselines'."""
+    asked, offset = summary.get("episodes"), summary.get("eval_seed_offset")
+    asked_key = (asked, "asked")
+    parts = []
+    for policy, key in EVAL_KEYS.items():
+        cells = {}  # (label, houses) -> {basis: [run seeds]}
+        missing = total = 0
+        for label, v in summary["variants"].items():
+            n = len(v["seeds"])
+            for h in evaluations:
+                e = v.get(key, {}).get(h) or {}
+                for run_seed, episodes, seed in zip(v["seeds"], e.get("episodes") or [None] * n,
+                                                    e.get("eval_seed") or [None] * n):
+                    total += 1
+                    if episodes is None:
+                        missing += 1
+                        continue
+                    seed = LEGACY_EVAL_SEED if seed is None else seed
+                    basis = (episodes, "asked" if offset is not None and seed == offset + run_seed else seed)
+                    cells.setdefault((label, h), {}).setdefault(basis, []).append(run_seed)
+        name = f"{POLICY_NAMES[policy]} policy"
+        kinds = {basis for by in cells.values() for basis in by}
+        if not kinds:
+            parts.append(f"{name}: none stored")
+            continue
+        if len(kinds) == 1:
+            (kind,) = kinds
+            text = f"{name}: {kind[0]} episodes per run and house set, " + _basis_text(kind, offset).split(", ", 1)[1]
+            if kind != asked_key:
+                text += (f" (stored evaluations, reported instead of the {_basis_text(asked_key, offset)} asked for, "
+                         f"which are not stored and need the runs' checkpoints)")
+        else:
+            text = (f"{name}, evaluations that differ (asked for: {_basis_text(asked_key, offset)}): " + "; ".join(
+                f"{label}, {EVAL_SETS[h]}: " + ", ".join(
+                    f"seed{'s' if len(seeds) > 1 else ''} {seeds_text(seeds)} {_basis_text(kind, offset)}"
+                    for kind, seeds in by.items()) for (label, h), by in cells.items()))
+        if missing:
+            text += f"; {missing} of {total} evaluations (runs x house sets) not stored, left out"
+        parts.append(text)
+    seed_asked = summary.get("baseline_eval_seed")
+    base = [(policy, h, r["episodes"], r.get("seed", LEGACY_EVAL_SEED))
+            for policy, by_h in summary["baselines"].items() for h, r in by_h.items() if r is not None]
+    kinds = {(episodes, seed) for _, _, episodes, seed in base}
+    if len(kinds) == 1:
+        (episodes, seed), = kinds
+        text = f"baselines: {episodes} episodes, seed {seed}"
+        if (episodes, seed) != (asked, seed_asked):
+            text += f" (stored, reported instead of the {asked} episodes with seed {seed_asked} asked for)"
+        parts.append(text)
+    elif kinds:
+        parts.append(f"baselines, evaluations that differ (asked for: {asked} episodes, seed {seed_asked}): " + "; ".join(
+            f"{BASELINE_LABELS[p]}, {EVAL_SETS[h]}: {episodes} episodes, seed {seed}" for p, h, episodes, seed in base))
+    return "; ".join(parts)
 
 
 def seeds_text(seeds: Sequence[int]) -> str:
@@ -148,6 +268,21 @@ def _mean_minutes(seconds: Sequence[Optional[float]]) -> str:
     return f"{np.mean(known) / 60:.1f} min" if known else "not recorded"
 
 
+BLIND_TEXTS = {  # agent.blind -> what the section says of a variant with it
+    "true": "The blind variant (`agent.blind=true`) trains like the others on images of zeros: what it reaches "
+            "needs no sight.",
+    "target": "The target-blind variant (`agent.blind=target`) sees its observations but a target image of zeros: "
+              "it can learn the houses, not which goal it is given.",
+    "observation": "The observation-blind variant (`agent.blind=observation`) sees the target image but "
+                   "observations of zeros: it knows the goal, not where it is.",
+}
+
+
+def _blind_text(exp: Experiment) -> str:
+    modes = [mode for mode in BLIND_TEXTS if any(f"agent.blind={mode}" in v.overrides for v in exp.variants)]
+    return "".join(" " + BLIND_TEXTS[mode] for mode in modes)
+
+
 def section(exp: Experiment, scale: str, summary: dict, command: str, image: str) -> str:
     evaluations = exp.evaluations
     seeds = {label: v["seeds"] for label, v in summary["variants"].items()}
@@ -168,8 +303,7 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
                     for v in exp.variants) + ".  ",
         *([f"Not in this part-way report, no run stored yet: {'; '.join(summary['not_stored'])}.  "]
           if summary.get("not_stored") else []),
-        f"Seeds: {seeds_line}. Evaluation: {summary['episodes']} "
-        f"episodes per run and house set, sampled policy, complexity 1.  ",
+        f"Seeds: {seeds_line}. Evaluation at complexity 1: {evaluation_basis(summary, evaluations)}.  ",
         _provenance(summary) + " Mean training wall time per run: "
         + "; ".join(f"{label} {_mean_minutes(v['training_seconds'])}" for label, v in summary["variants"].items())
         + " (compilation and pre-training included).",
@@ -178,6 +312,8 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         "",
         table(summary, evaluations),
         "",
+        evaluation_table(summary, evaluations),
+        "",
         ("One seed: each cell is that run's value, no interval" if max(map(len, seeds.values())) == 1 else
          "Each cell: the mean over the seeds and its 95% t-interval [low, high] (Student's t, n − 1 degrees of "
          "freedom, clipped to the possible range" + ("; a variant with one run: its value, no interval)" if n == 1
@@ -185,12 +321,19 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         + "; (n=k): only k runs have that number. "
         f"Frames to threshold: the first log row at which the training success rate, a running mean over "
         f"{SMOOTH_FRACTION:.0%} of the run, reaches {threshold:g}; the mean and interval are over the runs that reach "
-        f"it, and the runs that never do are counted. Final training success: the last {FINAL_FRACTION:.0%} of the "
+        f"it, and the runs that never do are counted. Restricted mean frames to threshold (runs that never reach it "
+        f"censored at their last frame): the area under the Kaplan-Meier curve of the share of runs not yet at the "
+        f"threshold, from 0 to the shortest run's last frame ({frames_text(summary['rmst_horizon'])}), with its 95% "
+        f"interval (Greenwood's variance, normal approximation, clipped to that range); when no run reaches it, that "
+        f"horizon exactly. Final training success: the last {FINAL_FRACTION:.0%} of the "
         f"run; its change: that minus the {FINAL_FRACTION:.0%} before it (above 0: still improving when the run "
-        f"ended). Baselines, evaluated like the runs but with no training: a {BASELINE_LABELS['random']} and the "
-        f"{BASELINE_LABELS['oracle']} (`env.oracle`)."
-        + (" The blind variant (`agent.blind=true`) trains like the others on images of zeros: what it reaches "
-           "needs no sight." if any("agent.blind=true" in v.overrides for v in exp.variants) else "")
+        f"ended). Evaluation with both policies (second table): sampled, actions drawn from the policy as in "
+        f"training; greedy, its most probable action at each step. \"seeds\": the mean over the seeds and its "
+        f"t-interval as above; \"episodes\": success over all the variant's evaluation episodes pooled across "
+        f"seeds, with Wilson's 95% score interval, which takes the episodes as independent and so leaves out the "
+        f"spread between seeds that the t-interval includes. Baselines, evaluated like the runs but with no "
+        f"training: a {BASELINE_LABELS['random']} and the {BASELINE_LABELS['oracle']} (`env.oracle`)."
+        + _blind_text(exp)
         + f" Curves: the mean over seeds of the running mean, shaded with its 95% t-band; dotted: the threshold; "
         f"dashed and dash-dotted: the random policy's and the oracle's success rate and episode length in the "
         f"{EVAL_SETS.get(reference_houses(summary), 'evaluated houses')}.",
@@ -201,13 +344,19 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         lines += ["", f"Welch's t-test on frames to threshold against {first}, a run that never reaches it counted "
                       f"at the run's last frame: " + "; ".join(f"{label} p = {'–' if p is None else f'{p:.2g}'}"
                                                               for label, p in tests) + "."]
+    tests = [(label, v.get("logrank_p_frames_vs_first")) for label, v in summary["variants"].items()][1:]
+    if tests and any(p is not None for _, p in tests):
+        first = next(iter(summary["variants"]))
+        lines += ["", f"Log-rank test on frames to threshold against {first}, a run that never reaches it censored "
+                      f"at its last frame: " + "; ".join(f"{label} p = {'–' if p is None else f'{p:.2g}'}"
+                                                        for label, p in tests) + "."]
     first = next(iter(summary["variants"]))
-    for h in evaluations:
-        tests = [(label, (v.get("welch_p_eval_success_vs_first") or {}).get(h))
-                 for label, v in summary["variants"].items()][1:]
-        if tests and any(p is not None for _, p in tests):
-            lines += ["", f"Welch's t-test on evaluation success ({EVAL_SETS[h]}) against {first}: "
-                      + "; ".join(f"{label} p = {'–' if p is None else f'{p:.2g}'}" for label, p in tests) + "."]
+    for key, policy in (("welch_p_eval_success_vs_first", ""), ("welch_p_eval_greedy_success_vs_first", ", greedy")):
+        for h in evaluations:
+            tests = [(label, (v.get(key) or {}).get(h)) for label, v in summary["variants"].items()][1:]
+            if tests and any(p is not None for _, p in tests):
+                lines += ["", f"Welch's t-test on evaluation success ({EVAL_SETS[h]}{policy}) against {first}: "
+                          + "; ".join(f"{label} p = {'–' if p is None else f'{p:.2g}'}" for label, p in tests) + "."]
     if exp.paper:
         lines += ["", f"The paper: {exp.paper}"]
     return "\n".join(lines)

@@ -4,9 +4,14 @@ finished, evaluate and store each run, then summarise, plot and write its sectio
 `run_experiment(exp, Options(...))` goes through four steps: `select_runs` (the plan,
 or only the stored runs for a part-way report), `train_missing` (in this process, or
 `jobs` at a time in processes of their own, `workers.run_pool`), `evaluate_run` for
-each run and `baselines` for the policies that need no training (both cached in the
-store), and `report` (the JSON summary `STORE/SCALE/NAME.json`, the figure
-`DOCS/experiments/NAME_SCALE.png` and the section of `DOCS/results.md`).
+each run (with each policy of `EVAL_POLICIES`, sampled and greedy, in each house set,
+with the run's evaluation seed `store.eval_seed`) and `baselines` for the policies that
+need no training (both cached in the store), and `report` (the JSON summary
+`STORE/SCALE/NAME.json`, the figure `DOCS/experiments/NAME_SCALE.png` and the section of
+`DOCS/results.md`). An evaluation that is not stored and cannot be made here (no
+checkpoint, with `skip_missing`; nothing at all with `evaluate=False`) falls back on the
+stored one of that run, houses and policy with the most episodes, and the section says
+what each number rests on.
 """
 
 from __future__ import annotations
@@ -31,11 +36,12 @@ from a2catvn_jax.run.training import train
 from a2catvn_jax.study import report as rp
 from a2catvn_jax.study import store as st
 from a2catvn_jax.study.registry import BASELINE_LABELS, EVAL_SETS, SCALES, Experiment, ExperimentError
-from a2catvn_jax.study.stats import summarise
+from a2catvn_jax.study.stats import EVAL_POLICIES, summarise
 from a2catvn_jax.study.store import DEFAULT_ROOT, DEFAULT_STORE, Run
 from a2catvn_jax.study.workers import run_pool
 
 DEFAULT_SEEDS = (0, 1, 2, 3, 4)
+DEFAULT_EPISODES = 500  # per run, house set and policy: Wilson's interval at 0.5 is about +-0.044
 Log = Callable[[str], None]
 
 
@@ -54,13 +60,16 @@ class Options:
     `seeds`, however many each variant has (a variant with none stored yet is left out
     and named; the first variant, the reference, needs one). `jobs` > 1 trains that many
     runs at once, each in a process of its own pinned to its share of the CPU cores;
-    `report=False` stops after the training (what those processes do). `command` is
-    the command line the report quotes.
+    `report=False` stops after the training (what those processes do). `evaluate=False`
+    trains and evaluates nothing: each number comes from the store, the evaluation asked
+    for (`episodes`, the run's evaluation seed) where it is stored, else the stored one
+    with the most episodes, as with `skip_missing` (the section says which); runs not
+    stored are not reported. `command` is the command line the report quotes.
     """
 
     scale: str = "cpu"
     seeds: tuple[int, ...] = DEFAULT_SEEDS
-    episodes: int = 100
+    episodes: int = DEFAULT_EPISODES
     root: Path = DEFAULT_ROOT
     docs: Path = Path("docs")
     store: Path = DEFAULT_STORE
@@ -73,6 +82,7 @@ class Options:
     jobs: int = 1
     report: bool = True
     stored_only: bool = False
+    evaluate: bool = True
 
     def __post_init__(self):
         for name in ("root", "docs", "store"):
@@ -201,56 +211,96 @@ def train_missing(exp: Experiment, runs: list[Run], opts: Options, log: Log) -> 
         seconds = train_run(run, log)
         if seconds:
             log(f"  trained in {seconds / 60:.1f} min")
-        st.store_run(run, evaluate_run(run, exp.evaluations, opts.episodes, log=log), opts.episodes)
+        st.store_run(run, evaluate_run(run, exp.evaluations, opts.episodes, log=log))
         log(f"  stored in {run.stored}")
 
 
 # -- evaluation -------------------------------------------------------------------------
 
 
-def evaluate_run(run: Run, houses: Sequence[str], episodes: int, policy: str = "sample", *,
-                 skip_missing: bool = False, log: Log = lambda _: None) -> dict:
-    """houses -> the evaluation of the run's last checkpoint in those houses.
+def _fallback(run: Run, missing: dict, results: dict, log: Log, why: str) -> None:
+    """Put in `results` (policy -> houses -> result), for each missing (policy, houses),
+    the stored evaluation with the most episodes (None when there is none), and log what
+    each rests on in one line."""
+    said: dict = {}  # what -> [houses, policy]
+    for p, hs in missing.items():
+        for h in hs:
+            stored = st.stored_evaluations(run, h, p)
+            results[p][h] = stored[0] if stored else None
+            what = (f"stored {stored[0]['episodes']} episodes, seed {stored[0].get('seed', st.LEGACY_EVAL_SEED)}"
+                    if stored else "none stored, left out")
+            said.setdefault(what, []).append(f"{h} {p}")
+    log(f"{why}: {run.name}: " + "; ".join(f"{', '.join(where)}: {what}" for what, where in said.items()))
+
+
+def evaluate_run(run: Run, houses: Sequence[str], episodes: int, policies: Sequence[str] = EVAL_POLICIES, *,
+                 skip_missing: bool = False, evaluate: bool = True, log: Log = lambda _: None) -> dict:
+    """policy -> houses -> the evaluation of the run's last checkpoint in those houses,
+    `episodes` episodes with the run's evaluation seed (`store.eval_seed`).
 
     Each result is read from the store, else from the work directory's cache; the
-    missing ones are evaluated together from the final checkpoint (one restore, one
-    compile for the sets of one shape), cached and, for a stored run, added to the
-    store. Without that checkpoint: `ExperimentError`, or None for each missing set
-    with `skip_missing`."""
-    results = st.saved_evaluations(run, houses, episodes, policy)
-    missing = [h for h in houses if h not in results]
+    missing ones are evaluated together from the final checkpoint (one restore per set
+    of houses, one compile for the sets of one shape), cached and, for a stored run,
+    added to the store. Without that checkpoint: `ExperimentError`, or with
+    `skip_missing` the stored evaluation of that run, houses and policy with the most
+    episodes (`store.stored_evaluations`; None when there is none). With `evaluate=False`
+    nothing is evaluated: every missing result falls back so."""
+    seed = st.eval_seed(run.seed)
+    results = {p: st.saved_evaluations(run, houses, episodes, p, seed) for p in policies}
+    missing = {p: [h for h in houses if h not in results[p]] for p in policies}
+    missing = {p: hs for p, hs in missing.items() if hs}
     if not missing:
         return results
-    if not st.has_final_checkpoint(run):
-        if skip_missing:
-            log(f"skipped: {run.name} has no stored evaluation in {', '.join(missing)} with {episodes} episodes")
-            return {**results, **{h: None for h in missing}}
-        stored = sorted(p.name for p in run.stored.glob("eval_*.json"))
-        raise ExperimentError(
-            f"{run.name} ({run.stored}): no stored evaluation in {', '.join(missing)} houses with {policy} policy and "
-            f"{episodes} episodes (stored: {', '.join(stored) or 'none'}), and its final checkpoint is not in "
-            f"{run.workdir}; use the stored episode count, or pass --skip-missing")
-    log(f"evaluating {run.name} in {', '.join(missing)}")
-    fresh = evaluate_sets(run.workdir, episodes, houses=missing, policies=(policy,), log=lambda _: None)
-    for h in missing:
-        results[h] = fresh[(h, policy)]
-        st.save_evaluation(run, h, policy, episodes, results[h])
+    if not evaluate or not st.has_final_checkpoint(run):
+        if evaluate and not skip_missing:
+            stored = sorted(p.name for p in run.stored.glob("eval_*.json"))
+            what = "; ".join(f"{', '.join(hs)} houses with {p} policy" for p, hs in missing.items())
+            raise ExperimentError(
+                f"{run.name} ({run.stored}): no stored evaluation in {what}, {episodes} episodes, seed {seed} "
+                f"(stored: {', '.join(stored) or 'none'}), and its final checkpoint is not in {run.workdir}; "
+                f"pass --skip-missing (or --no-evaluate) to report the stored evaluations instead")
+        _fallback(run, missing, results, log, "not evaluated (--no-evaluate)" if not evaluate else
+                  f"no checkpoint for the {episodes} episodes with seed {seed} asked for")
+        return results
+    groups: dict = {}  # the houses missing -> the policies missing there
+    for p, hs in missing.items():
+        groups.setdefault(tuple(hs), []).append(p)
+    for hs, ps in groups.items():
+        log(f"evaluating {run.name} in {', '.join(hs)} ({', '.join(ps)}; {episodes} episodes, seed {seed})")
+        fresh = evaluate_sets(run.workdir, episodes, houses=hs, policies=ps, seed=seed, log=lambda _: None)
+        for p in ps:
+            for h in hs:
+                results[p][h] = fresh[(h, p)]
+                st.save_evaluation(run, h, p, episodes, results[p][h])
     return results
 
 
 def baselines(exp: Experiment, scale: str, cfg, houses: Sequence[str], episodes: int, store=DEFAULT_STORE,
-              log: Log = lambda _: None) -> dict:
+              log: Log = lambda _: None, evaluate: bool = True) -> dict:
     """policy -> houses -> the result of that baseline (`BASELINE_LABELS`) in the
-    experiment's environment, cached in STORE/SCALE/CONFIG/baselines/."""
+    experiment's environment with `episodes` and seed `store.BASELINE_EVAL_SEED`, cached
+    in STORE/SCALE/CONFIG/baselines/. With `evaluate=False` one not stored falls back on
+    the stored one with the most episodes (`store.stored_baselines`), else is None."""
     out: dict = {}
+    seed = st.BASELINE_EVAL_SEED
     for policy in BASELINE_LABELS:
         out[policy] = {}
         for h in houses:
-            path = st.baseline_path(exp, scale, cfg, policy, h, episodes, store)
-            if not path.is_file():
-                log(f"evaluating the {BASELINE_LABELS[policy]} in {EVAL_SETS[h]}")
-                st.save_result(path, evaluate_baseline(cfg, episodes, houses=h, policy=policy, log=lambda _: None))
-            out[policy][h] = json.loads(path.read_text())
+            result = st.saved_baseline(exp, scale, cfg, policy, h, episodes, store, seed)
+            if result is None and not evaluate:
+                stored = st.stored_baselines(exp, scale, cfg, policy, h, store)
+                result = stored[0] if stored else None
+                log(f"not evaluated (--no-evaluate): the {BASELINE_LABELS[policy]} in {EVAL_SETS[h]}: "
+                    + (f"the stored evaluation of {result['episodes']} episodes with seed "
+                       f"{result.get('seed', st.LEGACY_EVAL_SEED)} is reported instead" if result else
+                       "none stored, left out"))
+            elif result is None:
+                log(f"evaluating the {BASELINE_LABELS[policy]} in {EVAL_SETS[h]} ({episodes} episodes, seed {seed})")
+                path = st.baseline_path(exp, scale, cfg, policy, h, episodes, store, seed)
+                st.save_result(path, evaluate_baseline(cfg, episodes, houses=h, policy=policy, seed=seed,
+                                                       log=lambda _: None))
+                result = json.loads(path.read_text())
+            out[policy][h] = result
     return out
 
 
@@ -285,11 +335,15 @@ def report(exp: Experiment, runs: list[Run], opts: Options, not_stored: list[str
     the summary's JSON, its figure and its section; returns the summary (`t0`: when the
     experiment started, for the log)."""
     records = [st.run_record(run, evaluate_run(run, exp.evaluations, opts.episodes, skip_missing=opts.skip_missing,
-                                               log=log)) for run in runs]
+                                               evaluate=opts.evaluate, log=log)) for run in runs]
     base_cfg = load_config(exp.config_path(opts.scale), opts.overrides)
-    baseline = baselines(exp, opts.scale, base_cfg, exp.evaluations, opts.episodes, opts.store, log)
+    baseline = baselines(exp, opts.scale, base_cfg, exp.evaluations, opts.episodes, opts.store, log, opts.evaluate)
     summary = summarise(exp, records, baseline, opts.threshold_for(exp))
-    summary.update(scale=opts.scale, episodes=opts.episodes, max_episode_steps=runs[0].cfg.env.max_episode_steps,
+    used = sorted({n for v in summary["variants"].values() for e in v["eval"].values() for n in e["episodes"]
+                   if n is not None})
+    summary.update(scale=opts.scale, episodes=opts.episodes, episodes_used=used, eval_seed_offset=st.EVAL_SEED_OFFSET,
+                   baseline_eval_seed=st.BASELINE_EVAL_SEED, policies=list(EVAL_POLICIES),
+                   max_episode_steps=runs[0].cfg.env.max_episode_steps,
                    overrides=list(opts.overrides), command=opts.command, not_stored=not_stored)
     out_json = opts.store / opts.scale / f"{exp.name}.json"
     out_json.parent.mkdir(parents=True, exist_ok=True)
@@ -300,6 +354,7 @@ def report(exp: Experiment, runs: list[Run], opts: Options, not_stored: list[str
                      rp.section(exp, opts.scale, summary, opts.command, image.relative_to(opts.docs).as_posix()))
     log(f"wrote {image}, {out_json} and its section of {opts.docs / 'results.md'} in {time.perf_counter() - t0:.0f} s")
     log(rp.table(summary, exp.evaluations))
+    log(rp.evaluation_table(summary, exp.evaluations))
     return summary
 
 
@@ -317,7 +372,8 @@ def run_experiment(exp: Experiment, opts: Options = Options(), log: Optional[Log
         compilation_cache(opts.root / ".jax_cache")
     stored = sum(r.is_stored() for r in runs)
     log(f"{exp.name}: {len(runs)} runs, {stored} stored in {opts.store}, {len(runs) - stored} to train or finish")
-    train_missing(exp, runs, opts, log)
+    if opts.evaluate:
+        train_missing(exp, runs, opts, log)
     if not opts.report:
         return {"experiment": exp.name, "trained": [run.name for run in runs if run.is_stored()]}
     pending = [run.name for run in runs if not run.is_stored()]

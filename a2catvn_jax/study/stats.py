@@ -1,10 +1,13 @@
 """The statistics of an experiment's runs: pure functions of their logs and evaluations.
 
 Means over seeds with Student's t-intervals (`t_interval`, `estimate`), Welch's t-test
-(`welch_p`), the smoothed learning curves of a training log (`curves`), frames to a
-success threshold, final training success and its late change, and `summarise`, which
-turns the runs of an experiment (`RunRecord`s, read by the caller) into the summary
-every report is made from. NumPy and SciPy only: nothing here reads or writes a file.
+(`welch_p`), Wilson's interval of a proportion over episodes pooled across seeds
+(`wilson_interval`), the smoothed learning curves of a training log (`curves`), frames to
+a success threshold, with the runs that never reach it censored at their last frame:
+the Kaplan-Meier restricted mean (`restricted_mean`) and the log-rank test
+(`logrank_p`); final training success and its late change, and `summarise`, which turns
+the runs of an experiment (`RunRecord`s, read by the caller) into the summary every
+report is made from. NumPy and SciPy only: nothing here reads or writes a file.
 """
 
 from __future__ import annotations
@@ -22,7 +25,8 @@ from a2catvn_jax.study.registry import Experiment, Variant
 
 SMOOTH_FRACTION = 0.1  # curves are running means over this fraction of a run's log rows
 FINAL_FRACTION = 0.1  # "final" training success: the mean over this last fraction of the rows
-CONFIDENCE = 0.95  # of the t-intervals
+CONFIDENCE = 0.95  # of the t-intervals, Wilson's intervals and the restricted means' intervals
+EVAL_POLICIES = ("sample", "greedy")  # the policies every run is evaluated with
 
 
 def standard_error(values: np.ndarray, axis: int = 0) -> np.ndarray:
@@ -80,6 +84,99 @@ def welch_p(a, b) -> Optional[float]:
     return float(p) if math.isfinite(p) else None
 
 
+def wilson_interval(successes: int, trials: int) -> tuple[float, float]:
+    """Wilson's score interval (95%) of a proportion: `successes` of `trials` independent
+    trials. (0, 1) when there is no trial."""
+    if trials < 0 or not 0 <= successes <= trials:
+        raise ValueError(f"need 0 <= successes <= trials, got {successes} of {trials}")
+    if trials == 0:
+        return 0.0, 1.0
+    z = stats.norm.ppf(0.5 + CONFIDENCE / 2)
+    p, n = successes / trials, trials
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return float(max(0.0, centre - half)), float(min(1.0, centre + half))
+
+
+def pooled_success(successes: Sequence[Optional[int]], episodes: Sequence[Optional[int]]) -> Optional[dict]:
+    """Success over all episodes of the runs (None entries: runs not evaluated, left
+    out): {"successes", "episodes", "rate", "low", "high"} with Wilson's 95% interval
+    (episodes taken as independent, the spread between seeds left out); None without any."""
+    pairs = [(int(k), int(n)) for k, n in zip(successes, episodes, strict=True) if k is not None and n is not None]
+    k, n = sum(k for k, _ in pairs), sum(n for _, n in pairs)
+    if n == 0:
+        return None
+    low, high = wilson_interval(k, n)
+    return {"successes": k, "episodes": n, "runs": len(pairs), "rate": k / n, "low": low, "high": high}
+
+
+def _censored(times, reached) -> tuple[np.ndarray, np.ndarray]:
+    times, reached = np.asarray(times, float), np.asarray(reached, bool)
+    if times.ndim != 1 or times.shape != reached.shape or times.size == 0:
+        raise ValueError(f"need one time and one reached flag per run, got {times.shape} and {reached.shape}")
+    if np.any(times < 0) or not np.all(np.isfinite(times)):
+        raise ValueError(f"times must be finite and >= 0, got {times.tolist()}")
+    return times, reached
+
+
+def restricted_mean(times, reached, horizon: float) -> dict:
+    """The restricted mean time to the event up to `horizon`: the area under the
+    Kaplan-Meier curve of "not yet reached" from 0 to `horizon`, each run either reaching
+    at `times[i]` (`reached[i]`) or censored there (never reached by its last frame).
+
+    Returns {"mean", "low", "high", "se", "events", "runs", "horizon"}: the interval is
+    the mean +- z * se, clipped to [0, horizon], with Greenwood's variance of the area,
+    sum over event times t_j <= horizon of A_j^2 d_j / (n_j (n_j - d_j)) (A_j: the area
+    from t_j to `horizon`; a term with n_j = d_j is 0, as in R's survRM2). The curve is
+    `scipy.stats.ecdf`'s survival function of the censored data."""
+    times, reached = _censored(times, reached)
+    if not horizon > 0:
+        raise ValueError(f"horizon must be > 0, got {horizon}")
+    event_times = np.unique(times[reached & (times <= horizon)])
+    if event_times.size:
+        data = stats.CensoredData(uncensored=times[reached], right=times[~reached])
+        survival = stats.ecdf(data).sf.evaluate(event_times)  # S just after each event time
+    else:
+        survival = np.zeros(0)
+    # S is 1 up to the first event, then steps at each event time; integrate to the horizon.
+    edges = np.concatenate([[0.0], event_times, [horizon]])
+    heights = np.concatenate([[1.0], survival])
+    areas = heights * np.diff(edges)  # areas[j + 1]: from event j to the next (or the horizon)
+    mean = float(areas.sum())
+    variance = 0.0
+    for j, t in enumerate(event_times):
+        at_risk = int(np.sum(times >= t))
+        died = int(np.sum(reached & (times == t)))
+        if at_risk > died:
+            variance += areas[j + 1:].sum() ** 2 * died / (at_risk * (at_risk - died))
+    se = math.sqrt(variance)
+    z = stats.norm.ppf(0.5 + CONFIDENCE / 2)
+    return {"mean": mean, "low": float(max(0.0, mean - z * se)), "high": float(min(horizon, mean + z * se)), "se": se,
+            "events": int(np.sum(reached & (times <= horizon))), "runs": int(times.size),
+            "horizon": float(horizon)}
+
+
+def logrank_p(times_a, reached_a, times_b, reached_b) -> Optional[float]:
+    """Two-sided p-value of the log-rank test between two sets of censored times
+    (`scipy.stats.logrank`); None when it is undefined (no event in either)."""
+    (ta, ra), (tb, rb) = _censored(times_a, reached_a), _censored(times_b, reached_b)
+    if not (ra.any() or rb.any()):
+        return None
+    x = stats.CensoredData(uncensored=ta[ra], right=ta[~ra])
+    y = stats.CensoredData(uncensored=tb[rb], right=tb[~rb])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        p = stats.logrank(x, y).pvalue
+    return float(p) if math.isfinite(p) else None
+
+
+def censored_frames(frames_to_threshold: Sequence[Optional[float]], frames_last: Sequence[float]):
+    """(times, reached) of runs: the frame a run reaches the threshold, or its last frame
+    (censored) when it never does."""
+    times = [last if f is None else f for f, last in zip(frames_to_threshold, frames_last, strict=True)]
+    return np.array(times, float), np.array([f is not None for f in frames_to_threshold], bool)
+
+
 def _number(value) -> float:
     return math.nan if value is None else float(value)
 
@@ -133,17 +230,42 @@ class RunRecord:
     seed: int
     relative: str  # SCALE/CONFIG/RUN_KEY/seed_N, where the run is stored
     log: list[dict]  # its stored training log
-    evals: dict  # houses -> its evaluation result there (None: not evaluated)
+    evals: dict  # policy -> houses -> its evaluation result there (None or absent: not evaluated)
     seconds: Optional[float]  # its training wall time, if recorded
     done: dict  # its done record: date, machine, git commit
 
 
+def episode_successes(result: dict) -> int:
+    """How many of an evaluation's episodes succeeded (its per-episode list, else its rate)."""
+    per_episode = (result.get("per_episode") or {}).get("success")
+    if per_episode is not None:
+        return int(sum(bool(s) for s in per_episode))
+    return int(round(result["success_rate"] * result["episodes"]))
+
+
+def evaluation_entry(results: Sequence[Optional[dict]]) -> dict:
+    """Per run (None: not evaluated): success rate, SPL, episodes, successes and the
+    evaluation seed; and "pooled", success over all their episodes (`pooled_success`)."""
+    def field(fn):
+        return [None if r is None else fn(r) for r in results]
+
+    entry = {"success_rate": field(lambda r: r["success_rate"]), "spl": field(lambda r: r["spl"]),
+             "episodes": field(lambda r: int(r["episodes"])), "successes": field(episode_successes),
+             "eval_seed": field(lambda r: r.get("seed"))}
+    entry["pooled"] = pooled_success(entry["successes"], entry["episodes"])
+    return entry
+
+
 def summarise(exp: Experiment, records: Sequence[RunRecord], baseline: dict, threshold: float) -> dict:
     """Per variant of `exp`, from its runs' records: curves (mean and 95% t-band), frames
-    to threshold, final training success and evaluation numbers, each per seed, and
-    Welch's tests against the first variant. `baseline`: policy -> houses -> result."""
+    to threshold (per run; the Kaplan-Meier restricted mean up to the shortest run's last
+    frame, `rmst_horizon`, and the log-rank test against the first variant), final
+    training success and evaluation numbers of each policy of `EVAL_POLICIES` ("eval":
+    sampled, "eval_greedy"), each per seed, and Welch's tests against the first variant.
+    `baseline`: policy -> houses -> result."""
     variants = {}
-    first_frames = first_eval = None
+    horizon = min(float(r.log[-1]["frames"]) for r in records)
+    first = None
     for variant in exp.variants:
         mine = [r for r in records if r.variant == variant]
         cs = [curves(r.log) for r in mine]
@@ -158,23 +280,32 @@ def summarise(exp: Experiment, records: Sequence[RunRecord], baseline: dict, thr
                           "half_width_95": half.tolist()}
         entry["frames_to_threshold"] = [frames_to_threshold(c, threshold) for c in cs]
         entry["frames_max"] = f_max
+        entry["frames_last"] = [float(c["frames"][-1]) for c in cs]
         # Welch's test counts a run that never reaches the threshold as reaching it at f_max.
         capped = [f_max if v is None else v for v in entry["frames_to_threshold"]]
-        if first_frames is None:
-            first_frames = capped
-        entry["welch_p_frames_vs_first"] = None if variant == exp.variants[0] else welch_p(first_frames, capped)
+        censored = censored_frames(entry["frames_to_threshold"], entry["frames_last"])
+        entry["rmst_frames"] = restricted_mean(*censored, horizon)
         entry["final_success"] = [final_success(r.log) for r in mine]
         entry["late_change"] = [late_change(r.log) for r in mine]
         entry["training_seconds"] = [r.seconds for r in mine]
-        entry["eval"] = {h: {m: [None if r.evals[h] is None else r.evals[h][m] for r in mine]
-                             for m in ("success_rate", "spl")} for h in exp.evaluations}
-        if first_eval is None:
-            first_eval = entry["eval"]
-        entry["welch_p_eval_success_vs_first"] = None if variant == exp.variants[0] else {
-            h: welch_p(*([v for v in e[h]["success_rate"] if v is not None] for e in (first_eval, entry["eval"])))
-            for h in exp.evaluations}
+        entry["eval"] = {h: evaluation_entry([(r.evals.get("sample") or {}).get(h) for r in mine])
+                         for h in exp.evaluations}
+        entry["eval_greedy"] = {h: evaluation_entry([(r.evals.get("greedy") or {}).get(h) for r in mine])
+                                for h in exp.evaluations}
+        if first is None:
+            first = {"capped": capped, "censored": censored, "eval": entry["eval"], "eval_greedy": entry["eval_greedy"]}
+            entry["welch_p_frames_vs_first"] = entry["logrank_p_frames_vs_first"] = None
+            entry["welch_p_eval_success_vs_first"] = entry["welch_p_eval_greedy_success_vs_first"] = None
+        else:
+            entry["welch_p_frames_vs_first"] = welch_p(first["capped"], capped)
+            entry["logrank_p_frames_vs_first"] = logrank_p(*first["censored"], *censored)
+            for key, p_key in (("eval", "welch_p_eval_success_vs_first"),
+                               ("eval_greedy", "welch_p_eval_greedy_success_vs_first")):
+                entry[p_key] = {h: welch_p(*([v for v in e[h]["success_rate"] if v is not None]
+                                             for e in (first[key], entry[key])))
+                                for h in exp.evaluations}
         entry["trained"] = [{"date": r.done.get("date"), "machine": r.done.get("machine"), "git": r.done.get("git")}
                             for r in mine]
         variants[variant.label] = entry
-    return {"experiment": exp.name, "title": exp.title, "threshold": threshold, "variants": variants,
-            "baselines": baseline}
+    return {"experiment": exp.name, "title": exp.title, "threshold": threshold, "rmst_horizon": horizon,
+            "variants": variants, "baselines": baseline}

@@ -8,16 +8,20 @@
 - its stored copy under STORE (default `results`, inside the repository):
   `STORE/SCALE/CONFIG/RUN_KEY/seed_N/` with config.yaml, variant.json, metrics.jsonl
   (the columns of `STORED_COLUMNS`, 4 significant digits), the evaluation results
-  (`eval_HOUSES_POLICY_EPISODES.json`), experiment_time.json, pretrain_metrics.jsonl
-  (pre-trained variants) and, written last, done.json (updates, frames, date, machine,
-  git commit).
+  (`eval_HOUSES_POLICY_EPISODES_seedS.json`, S the evaluation seed, `eval_seed`: 1000 +
+  the run's seed; older ones, `eval_HOUSES_POLICY_EPISODES.json`, hold seed 0),
+  experiment_time.json, pretrain_metrics.jsonl (pre-trained variants) and, written
+  last, done.json (updates, frames, date, machine, git commit).
 
 The run key hashes the configuration's values that differ from the schema's defaults
 (`Config()`), the seed left out, and whether the run starts from pre-training: a key
 added to the configuration with its default leaves every key as it was. Baselines that
 need no training are cached in `STORE/SCALE/CONFIG/baselines/`, named by `env_key`, the
-same hash of the environment section alone. A run with a done.json is finished: it is
-never trained again and its curves and evaluations are read from here.
+same hash of the environment section alone, and by their evaluation seed
+(`BASELINE_EVAL_SEED`). A run with a done.json is finished: it is never trained again and
+its curves and evaluations are read from here. An evaluation is used only for the
+episodes and seed it records (`matches`); `stored_evaluations` lists every one a run
+keeps, for a report that falls back on them.
 """
 
 from __future__ import annotations
@@ -53,6 +57,9 @@ STORED_COLUMNS = ("update", "frames", "complexity", "episodes", "success_rate", 
                   "episode_return", "grad_norm", "loss/total")
 DONE = "done.json"
 BASELINE_DIR = "baselines"
+EVAL_SEED_OFFSET = 1000  # a run of seed S is evaluated with seed EVAL_SEED_OFFSET + S
+BASELINE_EVAL_SEED = EVAL_SEED_OFFSET - 1  # the baselines' own: below every run's (run seeds are >= 0)
+LEGACY_EVAL_SEED = 0  # what every evaluation stored without a seed in its name used
 
 
 # -- keys -------------------------------------------------------------------------------
@@ -218,8 +225,23 @@ def _write_jsonl(path: Path, rows: list[dict]) -> None:
     path.write_text("".join(json.dumps(row, allow_nan=True) + "\n" for row in rows))
 
 
-def eval_name(houses: str, policy: str, episodes: int) -> str:
-    return f"eval_{houses}_{policy}_{episodes}.json"
+def eval_seed(run_seed: int) -> int:
+    """The evaluation seed of a run of seed `run_seed`: other episodes than any the run
+    trained on, the same for every variant of one seed (the variants of seed S meet the
+    same goals and starts), and for both policies."""
+    return EVAL_SEED_OFFSET + run_seed
+
+
+def eval_name(houses: str, policy: str, episodes: int, seed: Optional[int] = None) -> str:
+    """eval_HOUSES_POLICY_EPISODES_seedSEED.json (seed None: the older name, no seed)."""
+    return f"eval_{houses}_{policy}_{episodes}" + ("" if seed is None else f"_seed{seed}") + ".json"
+
+
+def matches(result: dict, episodes: int, seed: int, step: Optional[int] = None) -> bool:
+    """Whether a stored evaluation is the one asked for: its episodes and seed as it
+    records them (an older result without a seed used `LEGACY_EVAL_SEED`), and `step`."""
+    return (result.get("episodes") == episodes and result.get("seed", LEGACY_EVAL_SEED) == seed
+            and (step is None or result.get("step") == step))
 
 
 def stored_result(result: dict) -> dict:
@@ -254,10 +276,10 @@ def machine() -> str:
     return f"{os.cpu_count()}-core {cpu}; jax {jax.__version__} on {jax.default_backend()} ({devices})"
 
 
-def store_run(run: Run, evals: dict, episodes: int) -> None:
-    """Copy the small results of the finished, evaluated `run` (houses -> result) to its
-    stored directory; done.json goes last, so a copy that was interrupted is not taken
-    for a finished run."""
+def store_run(run: Run, evals: dict) -> None:
+    """Copy the small results of the finished, evaluated `run` (policy -> houses -> result,
+    each named by its own policy, episodes and seed) to its stored directory; done.json
+    goes last, so a copy that was interrupted is not taken for a finished run."""
     d = run.stored
     d.mkdir(parents=True, exist_ok=True)
     (d / DONE).unlink(missing_ok=True)
@@ -271,9 +293,11 @@ def store_run(run: Run, evals: dict, episodes: int) -> None:
     pre = run.workdir / "pretrain" / "pretrain_metrics.jsonl"
     if pre.is_file():
         _write_jsonl(d / "pretrain_metrics.jsonl", [rounded(r) for r in read_jsonl(pre)])
-    for houses, result in evals.items():
-        if result is not None:
-            (d / eval_name(houses, result["policy"], episodes)).write_text(to_json(stored_result(result)))
+    for by_houses in evals.values():
+        for houses, result in by_houses.items():
+            if result is not None:
+                name = eval_name(houses, result["policy"], result["episodes"], result["seed"])
+                (d / name).write_text(to_json(stored_result(result)))
     seconds = training_seconds(run)
     if seconds is not None:
         (d / "experiment_time.json").write_text(json.dumps({"seconds": round(seconds, 1)}) + "\n")
@@ -293,7 +317,7 @@ def stored_log(run: Run) -> list[dict]:
 
 
 def run_record(run: Run, evals: dict) -> RunRecord:
-    """What the statistics use of the stored `run`, with its evaluations (houses -> result)."""
+    """What the statistics use of the stored `run`, with its evaluations (policy -> houses -> result)."""
     return RunRecord(run.variant, run.seed, run.relative, stored_log(run), evals, training_seconds(run),
                      done_record(run))
 
@@ -301,39 +325,86 @@ def run_record(run: Run, evals: dict) -> RunRecord:
 # -- evaluations and baselines ----------------------------------------------------------
 
 
-def _cached(run: Run, houses: str, policy: str, episodes: int) -> Path:
+def _cached(run: Run, houses: str, policy: str, episodes: int, seed: int) -> Path:
     """Where the work directory keeps an evaluation (the run may not be stored yet)."""
-    return run.workdir / f"experiment_{eval_name(houses, policy, episodes)}"
+    return run.workdir / f"experiment_{eval_name(houses, policy, episodes, seed)}"
 
 
-def saved_evaluations(run: Run, houses: Sequence[str], episodes: int, policy: str = "sample") -> dict:
-    """houses -> the evaluation of the run's final checkpoint, for those the store or the
-    work directory's cache has; one found in the cache of a stored run is added to the store."""
+def _read(path: Path) -> Optional[dict]:
+    try:
+        result = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return result if isinstance(result, dict) else None
+
+
+def saved_evaluations(run: Run, houses: Sequence[str], episodes: int, policy: str = "sample",
+                      seed: Optional[int] = None) -> dict:
+    """houses -> the evaluation of the run's final checkpoint with `policy`, `episodes`
+    and evaluation `seed` (default `eval_seed(run.seed)`), for those the store or the
+    work directory's cache has (an older file without the seed in its name counts when
+    its recorded seed is `seed`); one found in the cache of a stored run is added to the store."""
+    seed = eval_seed(run.seed) if seed is None else seed
     results = {}
     updates = total_updates(run.cfg)
     for h in houses:
-        for path in (run.stored / eval_name(h, policy, episodes), _cached(run, h, policy, episodes)):
-            if path.is_file():
-                result = json.loads(path.read_text())
-                if result["step"] == updates:
-                    results[h] = result
-                    if path != run.stored / eval_name(h, policy, episodes) and run.is_stored():
-                        (run.stored / eval_name(h, policy, episodes)).write_text(to_json(stored_result(result)))
-                    break
+        named = run.stored / eval_name(h, policy, episodes, seed)
+        for path in (named, run.stored / eval_name(h, policy, episodes), _cached(run, h, policy, episodes, seed)):
+            result = _read(path) if path.is_file() else None
+            if result is not None and result.get("policy", policy) == policy and matches(result, episodes, seed,
+                                                                                         updates):
+                results[h] = result
+                if path.parent != run.stored and run.is_stored():
+                    named.write_text(to_json(stored_result(result)))
+                break
     return results
+
+
+def stored_evaluations(run: Run, houses: str, policy: str) -> list[dict]:
+    """Every evaluation of the run's final checkpoint in `houses` with `policy` that the
+    store keeps, whatever its episodes and seed: the most episodes first, then the
+    lowest seed."""
+    updates = total_updates(run.cfg)
+    found = [_read(p) for p in sorted(run.stored.glob(f"eval_{houses}_{policy}_*.json"))]
+    found = [r for r in found if r is not None and r.get("step") == updates and r.get("houses", houses) == houses
+             and r.get("policy", policy) == policy and isinstance(r.get("episodes"), int)]
+    return sorted(found, key=lambda r: (-r["episodes"], r.get("seed", LEGACY_EVAL_SEED)))
 
 
 def save_evaluation(run: Run, houses: str, policy: str, episodes: int, result: dict) -> None:
     """Cache a fresh evaluation in the work directory, and add it to the store if the run is stored."""
-    _cached(run, houses, policy, episodes).write_text(to_json(result))
+    _cached(run, houses, policy, episodes, result["seed"]).write_text(to_json(result))
     if run.is_stored():
-        (run.stored / eval_name(houses, policy, episodes)).write_text(to_json(stored_result(result)))
+        (run.stored / eval_name(houses, policy, episodes, result["seed"])).write_text(to_json(stored_result(result)))
 
 
 def baseline_path(exp: Experiment, scale: str, cfg, policy: str, houses: str, episodes: int,
-                  store=DEFAULT_STORE) -> Path:
-    """STORE/SCALE/CONFIG/baselines/POLICY_HOUSES_EPISODES_ENVKEY.json."""
-    return Path(store) / scale / exp.config / BASELINE_DIR / f"{policy}_{houses}_{episodes}_{env_key(cfg)}.json"
+                  store=DEFAULT_STORE, seed: Optional[int] = BASELINE_EVAL_SEED) -> Path:
+    """STORE/SCALE/CONFIG/baselines/POLICY_HOUSES_EPISODES_seedSEED_ENVKEY.json (seed None:
+    the older name without it, seed 0)."""
+    seeded = "" if seed is None else f"_seed{seed}"
+    return Path(store) / scale / exp.config / BASELINE_DIR / f"{policy}_{houses}_{episodes}{seeded}_{env_key(cfg)}.json"
+
+
+def saved_baseline(exp: Experiment, scale: str, cfg, policy: str, houses: str, episodes: int,
+                   store=DEFAULT_STORE, seed: int = BASELINE_EVAL_SEED) -> Optional[dict]:
+    """The stored baseline result with these episodes and seed (either file name), or None."""
+    for path in (baseline_path(exp, scale, cfg, policy, houses, episodes, store, seed),
+                 baseline_path(exp, scale, cfg, policy, houses, episodes, store, None)):
+        result = _read(path) if path.is_file() else None
+        if result is not None and matches(result, episodes, seed):
+            return result
+    return None
+
+
+def stored_baselines(exp: Experiment, scale: str, cfg, policy: str, houses: str, store=DEFAULT_STORE) -> list[dict]:
+    """Every stored result of baseline `policy` in `houses` of the environment of `cfg`,
+    whatever its episodes and seed: the most episodes first, then the lowest seed."""
+    directory = Path(store) / scale / exp.config / BASELINE_DIR
+    found = [_read(p) for p in sorted(directory.glob(f"{policy}_{houses}_*_{env_key(cfg)}.json"))]
+    found = [r for r in found if r is not None and r.get("policy") == policy and r.get("houses") == houses
+             and isinstance(r.get("episodes"), int)]
+    return sorted(found, key=lambda r: (-r["episodes"], r.get("seed", LEGACY_EVAL_SEED)))
 
 
 def save_result(path: Path, result: dict) -> None:
