@@ -48,6 +48,11 @@ With `--layers`, instead, the image stream's conv1 and conv2 alone, forward+back
 on `--frames` images, by XLA's convolution, by matrix products and in PyTorch, timed
 in turns: where the network's time against PyTorch's goes.
 
+`loop`: training frames/s as the host drives the update, timed in turns in one process:
+one update per call with its metrics read back before the next, against `--per-call K`
+updates per call of the device loop (`train.updates_per_call`), `--updates` updates per
+setting and round, the median of `--repeats` rounds.
+
 `profile`: milliseconds per update of each phase of the training update (rollout and
 the environment alone; the loss forward and forward + backward for plain A2C and for
 each auxiliary term on top of it; the optimiser; the whole update), for each
@@ -78,6 +83,7 @@ from a2catvn_jax.bench.profile import matmul_gflops, profile_update
 from a2catvn_jax.bench.throughput import (
     bench_conv_impls,
     bench_env,
+    bench_loop,
     bench_mujoco_gl,
     bench_network,
     bench_stream_layers,
@@ -97,7 +103,7 @@ def _header():
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.benchmark", description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=["env", "render", "train", "network", "profile"], help="what to benchmark")
+    parser.add_argument("what", choices=["env", "render", "train", "loop", "network", "profile"], help="what to benchmark")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=None, metavar="B",
                         help="env (default: 16 64 256 1024); render (default: 64); "
                              "train: one process per size, with its peak memory")
@@ -132,6 +138,8 @@ def main(argv=None) -> None:
                         help="network, profile: the networks to time, side by side: default (the built-in network) or config "
                              "files of agent keys, e.g. --networks default configs/presets/authors_network.yaml")
     cli.add_config_args(parser, config=False, help="configuration changes applied to every benchmarked setting")
+    parser.add_argument("--per-call", type=int, nargs="+", default=[10, 25], metavar="K",
+                        help="loop: updates per call of the device loop to time against one update per call")
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args(argv)
     if args.what == "train" and args.processes and args.batch_sizes:
@@ -160,6 +168,15 @@ def main(argv=None) -> None:
                 rows.append(r)
                 print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
                       f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
+        elif args.what == "loop":
+            rows = []
+            for name in args.configs:
+                extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
+                r = bench_loop(name, extra + overrides, args.updates, tuple(args.per_call), args.repeats)
+                rows.append(r)
+                print(f"{name} (batch {r['batch']}), training frames/s, median of {r['rounds']} rounds of "
+                      f"{r['updates']} updates each, in turns: "
+                      + ", ".join(f"{label} {fps:.0f}" for label, fps in r["fps"].items()), flush=True)
         elif args.what == "profile":
             rows = _profile_table(args, overrides)
         elif args.what == "render":

@@ -314,7 +314,7 @@ class TrainConfig(_Section):
     curriculum_frames: Pair[Int] = (5_000_000, 10_000_000)
     log_every: Count = 10  # updates between log lines
     checkpoint_every: Count = 500  # updates between checkpoints (and one on exit)
-    updates_per_call: Every = 0  # updates one call of the compiled loop runs on the device (0: log_every)
+    updates_per_call: Every = 0  # updates one call runs in a device loop (0: 1 on the CPU, log_every on an accelerator)
     keep_checkpoints: Count = 3
     grad_norm_every: Every = 0  # log each loss term's gradient norm on the shared conv layers every N updates (0: off)
 

@@ -468,23 +468,30 @@ NONFINITE = "nonfinite_at"  # `repeated`'s metric: the first of its updates (1-b
 UPDATES = "updates"  # `repeated`'s metric: how many updates its sums are over
 
 
-def repeated(update: Callable, layout: Optional[TrainState] = None) -> Callable:
+def repeated(update: Callable, layout: Optional[TrainState] = None, loop: bool = True) -> Callable:
     """`updates(ts, n) -> (ts, sums)`: `n` updates in one call, a loop on the device (one
     compile serves every n), with each metric summed over them, `UPDATES` (= n) and
     `NONFINITE` (the first update, counted from 1, whose metrics were not all finite;
     0 when all were). The host reads one small dict per call, not one per update.
     `layout` (`sharding_of`) pins the state's sharding on the way in and out, so that the
-    state a call returns is laid out as the next call was compiled for."""
+    state a call returns is laid out as the next call was compiled for. With `loop=False`
+    a call runs exactly one update (n must be 1) and no device loop: on this CPU a loop
+    around the update runs it at half the speed (docs/benchmarks.md, "Updates per call")."""
+
+    def finite(metrics):
+        return jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in jax.tree_util.tree_leaves(metrics)]))
 
     def updates(ts: TrainState, n):
+        if not loop:  # one update, the same outputs
+            ts, metrics = update(ts)
+            return ts, {**metrics, UPDATES: jnp.int32(1), NONFINITE: jnp.where(finite(metrics), 0, 1).astype(jnp.int32)}
         _, example = jax.eval_shape(update, ts)
         zeros = jax.tree_util.tree_map(lambda m: jnp.zeros(m.shape, m.dtype), example)
 
         def body(i, carry):
             ts, sums, bad = carry
             ts, metrics = update(ts)
-            finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in jax.tree_util.tree_leaves(metrics)]))
-            bad = jnp.where((bad == 0) & ~finite, i + 1, bad)
+            bad = jnp.where((bad == 0) & ~finite(metrics), i + 1, bad)
             return ts, jax.tree_util.tree_map(jnp.add, sums, metrics), bad
 
         ts, sums, bad = jax.lax.fori_loop(0, n, body, (ts, zeros, jnp.int32(0)))

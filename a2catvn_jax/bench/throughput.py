@@ -11,7 +11,7 @@ import numpy as np
 
 from a2catvn_jax.agent.layers import auto_impl, conv2d
 from a2catvn_jax.agent.networks import Conv1, make_networks, num_params
-from a2catvn_jax.agent.update import frames_per_update, make_update
+from a2catvn_jax.agent.update import NONFINITE, frames_per_update, make_update, repeated
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import NavEnv
 
@@ -272,3 +272,48 @@ def bench_stream_layers(resolution: int, frames: int, rounds: int, overrides=(),
         out[f"conv{i + 1}"] = {"shape": f"{k}x{k}/{s}, {c} -> {f} channels, {n}x{n} input", "auto": auto_impl(s, c),
                                **{name: 1000 * t for name, t in seconds.items()}}
     return out
+
+
+def bench_loop(name: str, overrides, updates: int, per_call: tuple[int, ...], rounds: int) -> dict:
+    """Training frames/s of the update loop as the host drives it, timed in turns in one
+    process on one state: `1 update, host read` calls the compiled update once per update
+    and reads its metrics back with a finite check before the next (one update per call,
+    as a loop without `train.updates_per_call` does), and `K per call` runs K updates in
+    the device loop (`update.repeated`) and reads the summed metrics once per call. Each
+    round times `updates` updates of every setting; the median round counts."""
+    cfg = load_config(CONFIGS / f"{name}.yaml", overrides)
+    env = NavEnv(cfg.env)
+    init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
+    state = init(jax.random.PRNGKey(0))
+    one = update.lower(state).compile()
+    many = repeated(update).lower(state, np.int32(1)).compile()
+
+    def host_read(state):
+        for _ in range(updates):
+            state, m = one(state)
+            m = jax.device_get(m)
+            assert all(np.isfinite(float(v)) for v in m.values())
+        return state
+
+    def looped(k):
+        def run(state):
+            for done in range(0, updates, k):
+                state, m = many(state, np.int32(min(k, updates - done)))
+                m = jax.device_get(m)
+                assert m[NONFINITE] == 0
+            return state
+        return run
+
+    settings = {"1 update, host read": host_read, **{f"{k} per call": looped(k) for k in per_call}}
+    state = jax.block_until_ready(host_read(state))  # warm: the first calls of each
+    for run in settings.values():
+        state = jax.block_until_ready(run(state))
+    times = {label: [] for label in settings}
+    for _ in range(rounds):
+        for label, run in settings.items():
+            t0 = time.perf_counter()
+            state = jax.block_until_ready(run(state))
+            times[label].append(time.perf_counter() - t0)
+    frames = updates * frames_per_update(cfg)
+    return {"config": name, "batch": env.num_envs, "updates": updates, "rounds": rounds,
+            "fps": {label: frames / float(np.median(t)) for label, t in times.items()}}

@@ -107,8 +107,9 @@ class MjxWorld:
         defaults = mujoco.MjModel.from_xml_string("<mujoco/>").opt
         for name in ("integrator", "cone", "jacobian", "solver"):
             setattr(kinematic.opt, name, getattr(defaults, name))
-        self.model = mjx.put_model(kinematic, impl="jax")
-        self._template = mjx.make_data(self.model)
+        device = jax.local_devices()[0]  # MJX would pick jax.devices()[0], another process's in a run of several
+        self.model = mjx.put_model(kinematic, impl="jax", device=device)
+        self._template = mjx.make_data(self.model, impl="jax", device=device)
         self.nq = int(model.nq)
         lo = np.zeros(self.nq, np.float32)
         hi = np.zeros(self.nq, np.float32)

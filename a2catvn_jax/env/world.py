@@ -149,6 +149,7 @@ class World:
             cfg.render.image_size,
             cfg.render.fovy,
             candidates=cfg.render.column_candidates if cfg.render.culling else 0,
+            chunk_frames=render_chunk(jax.default_backend()),
         )
         choice = backends.choose(self, cfg.render.backend, geometry, fields)
         self.backend, self.backend_note, self._mjx = choice.name, choice.note, choice.renderer
@@ -279,6 +280,16 @@ def share_shapes(worlds: list[World]) -> None:
                                            zip(largest, jax.tree_util.tree_leaves(worlds[0].arrays))])
     for w in worlds:
         w.arrays = w.arrays.padded_like(target)
+
+
+WHOLE_BATCH = 2**30  # `CameraSpec.chunk_frames` that renders every frame of a batch in one pass
+
+
+def render_chunk(platform: str) -> int:
+    """The ray caster's frames per pass on a platform: on the CPU a few at a time (0: about
+    2**18 pixels, at most 16 frames, so each pass stays in cache; docs/benchmarks.md), on
+    an accelerator the whole batch at once (a sequential loop over chunks would serialise it)."""
+    return 0 if platform == "cpu" else WHOLE_BATCH
 
 
 def render_in_chunks(render_fn, scene, pose, chunk: int = 64):
