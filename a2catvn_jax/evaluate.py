@@ -6,7 +6,9 @@
     python -m a2catvn_jax.evaluate --config FILE --policy random|oracle [--episodes 100] [...]
 
 The parameters of a checkpoint of the run in DIR (the latest, or update N) are
-restored with the run's own configuration. The policy (sampled; its argmax with
+restored with the run's own configuration. Evaluation only reads the run: it takes no
+lock and may run while the run trains (orbax's checkpoints appear when complete); when
+a checkpoint cannot be read, the error names those that can (`--step N`). The policy (sampled; its argmax with
 `--policy greedy`; or a baseline: uniformly random actions with `--policy random`, the
 shortest-path oracle with `--policy oracle`) then acts in all B environments at
 curriculum complexity 1 until every environment has finished ceil(episodes / B)
@@ -87,8 +89,11 @@ def main(argv=None) -> None:
         out = Path(f"baseline_{result['houses']}_{result['policy']}.json")
     else:
         out = default_output(args.workdir, result)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(to_json(result))
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(to_json(result))
+    except OSError as e:  # a full disk included
+        parser.exit(1, f"error: cannot write the result to {out}: {e.strerror or e}\n")
     print(f"wrote {out}")
 
 

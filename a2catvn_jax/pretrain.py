@@ -6,7 +6,9 @@ Renders `pretrain.dataset_size` observations at random poses in the training sce
 with their depth and segmentation, trains the conv base and the depth / segmentation
 heads on them with Adam (`pretrain.*` keys) and saves those layers in DIR/pretrained/.
 Training starts from them with `python -m a2catvn_jax.train ... --init-from DIR`,
-which loads the parameters whose names and shapes match and says which.
+which loads the parameters whose names and shapes match and says which. Like `train`,
+it holds DIR's lock while it runs (one writer per work directory) and stops with one
+line when a write fails.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import argparse
 
 from a2catvn_jax import cli
+from a2catvn_jax.errors import UserError
 from a2catvn_jax.run.pretraining import pretrain
 
 
@@ -24,7 +27,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     with cli.errors(parser, code=2):
         cfg = cli.config_from_args(args)
-    with cli.errors(parser, code=1):
+    with cli.errors(parser, code=1, kinds=(UserError, OSError)):  # OSError: a file it could not write
         pretrain(cfg, args.workdir)
 
 

@@ -403,7 +403,7 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
     schedule = learning_rate_schedule(cfg)
     replay_slots = max(1, tc.replay_size // T)
     targets = targets_of(spec, env)
-    example = transition_example(cfg, B)
+    example = jax.eval_shape(lambda: transition_example(cfg, B))  # shapes only: nothing of the batch allocated here
     warmup_steps = warmup_rollouts(cfg)
 
     def init(key, params: Optional[Params] = None) -> TrainState:

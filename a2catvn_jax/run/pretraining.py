@@ -11,11 +11,17 @@ One jit-compiled step serves every batch.
 The work directory gets `config.yaml`, `pretrain_metrics.jsonl` (one row per epoch)
 and the trained parameters (conv1-conv4 and the heads) as an orbax checkpoint in
 `pretrained/`. `load_matching` starts a training run from them.
+
+Like training, pre-training holds its work directory's lock (`run.workdir`) while it
+writes. The parameters are written once, at the end; a run that stopped earlier (or
+whose write failed, a full disk included: one line) leaves no parameters, and the next
+one in that directory removes its half-written files and metrics rows, with a line.
 """
 
 from __future__ import annotations
 
 import functools
+import shutil
 import time
 from pathlib import Path
 
@@ -31,8 +37,9 @@ from a2catvn_jax.agent.update import frame_truth, learner, targets_of, vn_terms
 from a2catvn_jax.config import save_config
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.errors import UserError
-from a2catvn_jax.run.checkpoint import silence_abandoned_reads
-from a2catvn_jax.run.logger import MetricsWriter
+from a2catvn_jax.run.checkpoint import PARTIAL, io_reason, quiet_abandoned_io, silence_abandoned_reads
+from a2catvn_jax.run.logger import MetricsWriter, truncate_metrics
+from a2catvn_jax.run.workdir import locked
 
 PRETRAINED_DIR = "pretrained"
 TRAINED_LAYERS = ("conv1", "conv2", "conv3", "conv4", "vn")  # what the pre-training losses reach
@@ -72,6 +79,7 @@ def make_dataset(cfg, env: NavEnv, size: int, key) -> dict:
     return {name: np.concatenate([p[name] for p in parts])[:size] for name in parts[0]}
 
 
+@locked("pretrain")  # one writer per work directory (run/workdir.py)
 def pretrain(cfg, workdir, *, log=None) -> dict:
     """Pre-train in `workdir`; returns the parameters."""
     log = log or functools.partial(print, flush=True)
@@ -81,6 +89,11 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
     workdir = Path(workdir)
     if (workdir / PRETRAINED_DIR).exists():
         raise PretrainError(f"{workdir / PRETRAINED_DIR} already exists; choose another --workdir")
+    for partial in sorted(workdir.glob(f"{PRETRAINED_DIR}{PARTIAL}*")):  # a write that did not finish
+        shutil.rmtree(partial, ignore_errors=True)
+        log(f"removed {partial}, parameters whose write did not finish")
+    if truncate_metrics(workdir, 0, name="pretrain_metrics", key="epoch"):
+        log(f"removed the rows of an unfinished pre-training from {workdir / 'pretrain_metrics.jsonl'}")
     pc = cfg.pretrain
     env = NavEnv(cfg.env)
     networks = make_networks(cfg, env.num_actions)
@@ -109,8 +122,11 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, dict(terms, total=loss)
 
-    writer = MetricsWriter(workdir, tensorboard=False, name="pretrain_metrics")
-    save_config(cfg, workdir / "config.yaml")
+    writer = MetricsWriter(workdir, tensorboard=False, name="pretrain_metrics", note=lambda: "nothing was saved")
+    try:
+        save_config(cfg, workdir / "config.yaml")
+    except OSError as e:
+        raise PretrainError(f"cannot write {workdir / 'config.yaml'}: {io_reason(e)}") from None
     n = pc.dataset_size
     batches = max(1, n // pc.batch_size)
     rng = np.random.default_rng(int(jax.random.randint(k_order, (), 0, 2**31 - 1)))
@@ -132,8 +148,15 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
     finally:
         writer.close()
     trained = {"params": {k: v for k, v in params["params"].items() if k in TRAINED_LAYERS}}
-    with ocp.StandardCheckpointer() as checkpointer:
-        checkpointer.save((workdir / PRETRAINED_DIR).absolute(), trained)
+    quiet_abandoned_io()
+    try:
+        with ocp.StandardCheckpointer() as checkpointer:
+            checkpointer.save((workdir / PRETRAINED_DIR).absolute(), trained)
+    except Exception as e:  # noqa: BLE001 - orbax and tensorstore raise many kinds
+        for partial in workdir.glob(f"{PRETRAINED_DIR}{PARTIAL}*"):
+            shutil.rmtree(partial, ignore_errors=True)
+        raise PretrainError(f"cannot write the pre-trained parameters to {workdir / PRETRAINED_DIR}: {io_reason(e)}; "
+                            f"nothing was saved") from None
     log(f"wrote the parameters of {', '.join(trained['params'])} to {workdir / PRETRAINED_DIR}")
     return params
 
