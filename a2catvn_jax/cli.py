@@ -78,9 +78,12 @@ def errors(parser: argparse.ArgumentParser, code: int = 1, kinds: Sequence[type]
 
 def run_stoppable(main: Callable[[], None]) -> None:
     """Run a command whose work stops with a checkpoint on Ctrl-C (`python -m ...`'s entry).
-    Once `main` is over, a further Ctrl-C while the process exits (a second press that
-    came after the stop had already finished) is ignored rather than a traceback."""
+    Once `main` is over, a further Ctrl-C or SIGTERM while the process exits (a second
+    press that came after the stop had already finished; a scheduler's signal that reaches
+    one process of a run after another's stopped them all) is ignored rather than a
+    traceback or a process gone from its peers' shutdown."""
     try:
         main()
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)

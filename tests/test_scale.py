@@ -19,7 +19,7 @@ import pytest
 
 from a2catvn_jax.config import load_config
 from a2catvn_jax.run.logger import read_jsonl
-from a2catvn_jax.run.training import TrainingError, devices_for, next_stop, train
+from a2catvn_jax.run.training import TrainingError, devices_for, next_stop, train, updates_per_call
 from tiny import TINY_LEARNER
 
 TINY = TINY_LEARNER + ["env.scene.kind=room", "env.scene.num_scenes=1", "env.max_episode_steps=10"]
@@ -32,23 +32,26 @@ def _leaves(state):
 
 def test_calls_stop_at_log_checkpoint_and_call_boundaries():
     cfg = load_config(None, TINY + ["train.log_every=4", "train.checkpoint_every=6", "train.updates_per_call=3"])
+    assert updates_per_call(cfg, "cpu") == updates_per_call(cfg, "gpu") == 3
     stops, update = [], 0
     while update < 13:
-        update = next_stop(update, 13, cfg)
+        update = next_stop(update, 13, cfg, 3)
         stops.append(update)
     assert stops == [3, 4, 6, 8, 9, 12, 13]
     default = load_config(None, TINY + ["train.log_every=5", "train.checkpoint_every=500"])
-    assert next_stop(0, 100, default) == 5 and next_stop(7, 100, default) == 10
+    assert updates_per_call(default, "cpu") == 1 and updates_per_call(default, "gpu") == 5
+    assert next_stop(0, 100, default, 5) == 5 and next_stop(7, 100, default, 5) == 10
+    assert next_stop(7, 100, default, 1) == 8
 
 
 def test_many_updates_per_call_match_one_per_call_and_resume_exactly(tmp_path):
-    """Six updates as two calls of three (the default: `train.log_every` per call), with a
+    """Six updates as two calls of three (`train.updates_per_call`), with a
     stop and a resume between them, against six calls of one: the same parameters and the
     same logged losses, to float rounding; the per-call run's log rows are the means of
     the one-per-call run's."""
     one = load_config(None, TINY + ["train.log_every=1", "train.checkpoint_every=3", "train.updates_per_call=1"])
     _, single, _ = train(one, tmp_path / "one", max_updates=6, **QUIET)
-    three = load_config(None, TINY + ["train.log_every=3", "train.checkpoint_every=3"])
+    three = load_config(None, TINY + ["train.log_every=3", "train.checkpoint_every=3", "train.updates_per_call=3"])
     train(three, tmp_path / "three", max_updates=3, **QUIET)
     _, looped, _ = train(three, tmp_path / "three", resume=True, max_updates=3, **QUIET)
     assert int(looped.update) == 6
@@ -157,3 +160,16 @@ def test_each_optimizer_takes_its_own_first_step(optimizer):
         assert np.max(np.abs(step)) == pytest.approx(lr, rel=1e-2)
     else:
         assert np.linalg.norm(step) == pytest.approx(lr * np.linalg.norm(kernel(before)), rel=1e-2)
+
+
+def test_render_passes_follow_the_platform():
+    """The ray caster renders a few frames per pass on the CPU (each pass in cache) and the
+    whole batch on an accelerator."""
+    from a2catvn_jax.env.camera import CameraSpec
+    from a2catvn_jax.env.world import render_chunk
+
+    cpu = CameraSpec(32, 32, chunk_frames=render_chunk("cpu"))
+    gpu = CameraSpec(32, 32, chunk_frames=render_chunk("gpu"))
+    assert cpu.chunk(4096) == 16 and CameraSpec(84, 84, chunk_frames=render_chunk("cpu")).chunk(4096) == 16
+    assert CameraSpec(174, 174, chunk_frames=render_chunk("cpu")).chunk(4096) == 9
+    assert gpu.chunk(4096) == 4096 and gpu.chunk(16) == 16

@@ -243,7 +243,7 @@ def test_second_ctrl_c_aborts_with_one_line(monkeypatch, tmp_path, capsys):
     import a2catvn_jax.train as train_cli
     from a2catvn_jax.run import training
 
-    flag = training._StopFlag()
+    flag = training.StopFlag()
     flag(signal.SIGTERM, None)
     flag(signal.SIGTERM, None)
     assert flag.stop
@@ -264,8 +264,8 @@ def test_second_ctrl_c_aborts_with_one_line(monkeypatch, tmp_path, capsys):
 
 def test_a_ctrl_c_after_the_command_is_over_is_ignored(monkeypatch):
     """`python -m a2catvn_jax.train` and `.experiments` run under `cli.run_stoppable`: once
-    the command is over (here with exit status 130), a Ctrl-C while the process exits is
-    ignored instead of ending in a traceback from an exit handler."""
+    the command is over (here with exit status 130), a Ctrl-C or SIGTERM while the process
+    exits is ignored instead of ending in a traceback from an exit handler."""
     import signal
 
     from a2catvn_jax import cli
@@ -278,7 +278,7 @@ def test_a_ctrl_c_after_the_command_is_over_is_ignored(monkeypatch):
 
     with pytest.raises(SystemExit):
         cli.run_stoppable(stopped)
-    assert calls == [(signal.SIGINT, signal.SIG_IGN)]
+    assert calls == [(signal.SIGINT, signal.SIG_IGN), (signal.SIGTERM, signal.SIG_IGN)]
 
 
 def test_grad_norm_diagnostic_is_logged_and_changes_nothing(tmp_path, straight):

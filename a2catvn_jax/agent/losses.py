@@ -26,9 +26,10 @@ from __future__ import annotations
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 import rlax
 
-GRAY = jnp.array([0.299, 0.587, 0.114], jnp.float32)
+GRAY = np.array([0.299, 0.587, 0.114], np.float32)  # NumPy: importing the package starts no JAX backend
 
 
 def bootstrapped_returns(rewards, dones, bootstrap, gamma: float, truncated=None, values=None):

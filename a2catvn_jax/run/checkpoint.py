@@ -7,15 +7,25 @@ buffer, PRNG key, update count) and a small JSON record (update, frames, config)
 Restoring it and calling `update` continues the run exactly where it stopped.
 
 Every problem is a `CheckpointError` that says what is wrong: no checkpoint in the
-directory, a step that does not exist, a checkpoint that cannot be read, or one
-written under a different configuration (the differing keys are listed).
+directory, a step that does not exist, a checkpoint that cannot be read (with the
+checkpoints that can: `--step N` goes on from one of them), one written under a
+different configuration (the differing keys are listed), or a write that failed (a full
+disk included; the last complete checkpoint is named).
+
+Orbax writes a checkpoint to `<update>.orbax-checkpoint-tmp-*` and renames it when it is
+complete, so readers only ever see complete ones. The run that writes the directory
+(the holder of its lock, `run.workdir`) removes what a write that did not finish left
+behind (`remove_partial`), and the checkpoints after the one it resumes from
+(`discard_after`).
 """
 
 from __future__ import annotations
 
 import copy
+import errno
 import logging
 import os
+import shutil
 import sys
 import warnings
 from pathlib import Path
@@ -31,6 +41,7 @@ from a2catvn_jax.errors import UserError
 
 CONFIG_FILE = "config.yaml"
 CHECKPOINT_DIR = "checkpoints"
+PARTIAL = ".orbax-checkpoint-tmp"  # the suffix (then -<time>) of a checkpoint orbax is still writing
 # Keys that may differ between the run that wrote a checkpoint and the one resuming it.
 BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_checkpoints", "train.grad_norm_every")
 
@@ -98,30 +109,94 @@ class Checkpointer:
     def latest(self) -> Optional[int]:
         return self.manager.latest_step()
 
+    def last_complete(self) -> str:
+        """'the last complete checkpoint is ...', for error messages."""
+        steps = sorted(self.steps())
+        if not steps:
+            return f"there is no complete checkpoint in {self.directory}"
+        return f"the last complete checkpoint is update {steps[-1]} ({self.directory / str(steps[-1])})"
+
     def save(self, state, cfg: Config, frames: int) -> int:
-        """Write `state` under its update count; returns that count."""
+        """Write `state` under its update count; returns that count. A write that fails
+        (a full disk included) leaves nothing half-written and raises a `CheckpointError`
+        that names the last complete checkpoint."""
         step = int(jax.device_get(state.update))
         if step in self.steps():
             return step
-        save_config(cfg, self.workdir / CONFIG_FILE)
+        self._check_space(state, step)
         meta = {"update": step, "frames": int(frames), "config": to_dict(cfg), "format": FORMAT}
-        self.manager.save(
-            step,
-            args=ocp.args.Composite(state=ocp.args.StandardSave(_drop_empty(state)), meta=ocp.args.JsonSave(meta)),
-            force=True,
-        )
-        self.manager.wait_until_finished()
+        quiet_abandoned_io()
+        try:
+            if jax.process_index() == 0:  # with several processes, one writes the shared files
+                save_config(cfg, self.workdir / CONFIG_FILE)
+            self.manager.save(
+                step,
+                args=ocp.args.Composite(state=ocp.args.StandardSave(_drop_empty(state)), meta=ocp.args.JsonSave(meta)),
+                force=True,
+            )
+            self.manager.wait_until_finished()
+        except Exception as e:  # noqa: BLE001 - orbax and tensorstore raise many kinds
+            self._failed = True
+            for partial in self.directory.glob(f"{step}{PARTIAL}*"):
+                shutil.rmtree(partial, ignore_errors=True)
+            raise CheckpointError(f"cannot write the checkpoint of update {step} to {self.directory}: "
+                                  f"{io_reason(e)}; {self.last_complete()}") from None
         return step
+
+    def _check_space(self, state, step: int) -> None:
+        """Refuse a write the disk has no room for (`CheckpointError`) before it starts:
+        room for the latest checkpoint's size again, or the state's size before the first."""
+        try:
+            free = shutil.disk_usage(self.directory).free
+        except OSError:
+            return
+        latest = self.latest()
+        need = _du(self.directory / str(latest)) if latest is not None else _tree_bytes(state)
+        if need > free:
+            raise CheckpointError(
+                f"cannot write the checkpoint of update {step} to {self.directory}: No space left on device "
+                f"(it needs about {_mib(need)}, {_mib(free)} is free); {self.last_complete()}")
+
+    def remove_partial(self, log) -> list[Path]:
+        """Remove what checkpoint writes that did not finish left behind (a killed run, a
+        full disk), saying so with `log`. Only the run that holds the work directory's lock
+        may call it: another run's write in progress looks the same."""
+        removed = sorted(p for p in self.directory.glob(f"*{PARTIAL}*") if p.is_dir())
+        for partial in removed:
+            shutil.rmtree(partial, ignore_errors=True)
+            log(f"removed {partial}, a checkpoint whose write did not finish")
+        if removed:
+            self.manager.reload()
+        return removed
+
+    def discard_after(self, step: int, log) -> list[int]:
+        """Delete the checkpoints after update `step` (the run goes on from `step`: they
+        belong to a past the run no longer has), saying so with `log`."""
+        later = sorted(s for s in self.steps() if s > step)
+        for s in later:
+            try:
+                self.manager.delete(s)
+            except Exception:  # noqa: BLE001 - a damaged checkpoint: remove its files directly
+                shutil.rmtree(self.directory / str(s), ignore_errors=True)
+        if later:
+            self.manager.reload()
+            log(f"removed the checkpoints after update {step} (update{'s' if len(later) > 1 else ''} "
+                f"{', '.join(map(str, later))}): the run goes on from update {step}")
+        return later
 
     def restore(self, template, cfg: Optional[Config] = None, step: Optional[int] = None):
         """(state, meta) of checkpoint `step` (default: the latest), shaped like `template`.
 
         `template` is a `TrainState` (or its `jax.eval_shape`) of the configuration the
         run uses now; with `cfg` given, a checkpoint written under a different
-        configuration is refused.
+        configuration is refused. A checkpoint that cannot be read is a `CheckpointError`
+        that names the checkpoints that can.
         """
+        return self._naming_intact(self._restore, template, cfg, step)
+
+    def _restore(self, template, cfg, step):
         step, path, meta = self._checked_meta(cfg, step)
-        abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
+        abstract = _with_sharding(template)
         written = meta.get("format", 1)
         if written == FORMAT:
             state = _fill_empty(abstract, self._restore_state(path, step, ocp.args.StandardRestore(_drop_empty(abstract))))
@@ -137,8 +212,36 @@ class Checkpointer:
         """(params, meta): only the network parameters of checkpoint `step`, shaped like
         `template` (e.g. `jax.eval_shape(networks.init, key)`); the optimiser state
         and replay buffer stay on disk."""
+        return self._naming_intact(self._restore_params, template, cfg, step)
+
+    def _naming_intact(self, read, template, cfg, step):
+        """`read(template, cfg, step)`; when the checkpoint cannot be read, the error also
+        names the other checkpoints that `read` can read."""
+        try:
+            return read(template, cfg, step)
+        except _Unreadable as e:
+            failed = self.resolve_step(step)
+            intact = []
+            for other in sorted((s for s in self.steps() if s != failed), reverse=True):
+                try:
+                    read(template, cfg, other)
+                    intact.append(other)
+                except CheckpointError:
+                    pass
+            if len(intact) > 1:
+                more = (f"; the intact checkpoints are updates {', '.join(map(str, sorted(intact)))}: "
+                        f"--step {intact[0]} uses the newest of them")
+            elif intact:
+                more = f"; the intact checkpoint is update {intact[0]}: --step {intact[0]} uses it"
+            else:
+                more = "; no other checkpoint can be read either" if len(self.steps()) > 1 else ""
+            if intact and intact[0] < failed:
+                more += " (the updates after it are lost)"
+            raise CheckpointError(f"{e}{more}") from None
+
+    def _restore_params(self, template, cfg, step):
         step, path, meta = self._checked_meta(cfg, step)
-        abstract = {"params": jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)}
+        abstract = {"params": _with_sharding(template)}
         params = self._restore_state(path, step, ocp.args.PyTreeRestore(item=abstract, partial_restore=True))["params"]
         self._check_shapes(path, abstract["params"], params)
         return params, meta
@@ -161,7 +264,7 @@ class Checkpointer:
         try:
             meta = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
         except Exception as e:  # noqa: BLE001 - orbax raises many kinds
-            raise CheckpointError(f"{path}: cannot read the checkpoint record ({type(e).__name__}: {_short(str(e))})") from None
+            raise _Unreadable(f"{path}: cannot read the checkpoint record ({type(e).__name__}: {_short(str(e))})") from None
         if cfg is not None:
             try:
                 saved = from_dict(Config, with_legacy_values(meta["config"]))
@@ -188,7 +291,8 @@ class Checkpointer:
             sys.unraisablehook = previous_hook
         except Exception as e:  # noqa: BLE001
             # The hook stays: reads abandoned by the failed restore may still finish later.
-            raise CheckpointError(
+            quiet_abandoned_io()
+            raise _Unreadable(
                 f"{path}: the checkpoint is corrupt or does not match this configuration "
                 f"({type(e).__name__}: {_short(str(e))})"
             ) from None
@@ -203,7 +307,41 @@ class Checkpointer:
             raise CheckpointError(f"{path}: array shapes do not match this configuration at {', '.join(bad[:5])}")
 
     def close(self):
-        self.manager.close()
+        try:
+            self.manager.close()
+        except Exception:  # noqa: BLE001
+            if not getattr(self, "_failed", False):
+                raise  # after a failed write, the error already raised is the one to report
+
+
+class _Unreadable(CheckpointError):
+    """A checkpoint whose files cannot be read (damaged, truncated, missing)."""
+
+
+def io_reason(e: BaseException) -> str:
+    """What went wrong in a failed write, in a few words: the OS error's text where there is
+    one in the exception's chain (tensorstore's errors carry it as text), else the error."""
+    seen = e
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.strerror:
+            return seen.strerror + (" (the disk is full)" if seen.errno == errno.ENOSPC else "")
+        seen = seen.__cause__ or seen.__context__
+    text = str(e)
+    if "No space left on device" in text or "os_error_code='28'" in text:
+        return "No space left on device (the disk is full)"
+    return f"{type(e).__name__}: {_short(text)}"
+
+
+def _du(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def _tree_bytes(tree) -> int:
+    return sum(int(np.prod(np.shape(x))) * np.dtype(x.dtype).itemsize for x in jax.tree_util.tree_leaves(tree))
+
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB" if n < 2**30 else f"{n / 2**30:.1f} GiB"
 
 
 def _upgrade_to_2(state: dict, cfg: Config) -> dict:
@@ -260,6 +398,19 @@ def with_legacy_values(config: dict) -> dict:
                 node = node.setdefault(p, {})
             node[name] = value
     return config
+
+
+def _with_sharding(template):
+    """The abstract arrays of `template`, each with a sharding: its own, or this process's
+    first device. Orbax restores into them whatever layout the checkpoint was written
+    from (one device, several, several processes)."""
+    here = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+
+    def leaf(x):
+        x = ocp.utils.to_shape_dtype_struct(x)
+        return x if getattr(x, "sharding", None) is not None else jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=here)
+
+    return jax.tree_util.tree_map(leaf, template)
 
 
 def _drop_empty(tree):
@@ -321,21 +472,65 @@ def silence_abandoned_reads() -> None:
 
 
 class _AbandonedOrbaxTasks:
-    """A logging filter: drops "Task exception was never retrieved" records of orbax tasks."""
+    """A logging filter: drops "Task (or Future) exception was never retrieved" records of orbax tasks."""
 
     def filter(self, record) -> bool:
-        if not record.getMessage().startswith("Task exception was never retrieved") or not record.exc_info:
+        message = record.getMessage()
+        if not message.startswith(("Task exception was never retrieved", "Future exception was never retrieved")):
             return True
-        tb = record.exc_info[2]
-        while tb is not None:
-            if "orbax" in tb.tb_frame.f_code.co_filename:
-                return False
-            tb = tb.tb_next
-        return True
+        return not (record.exc_info and _through_orbax(record.exc_info[2]))
+
+
+def _through_orbax(tb) -> bool:
+    while tb is not None:
+        if "orbax" in tb.tb_frame.f_code.co_filename:
+            return True
+        tb = tb.tb_next
+    return False
+
+
+def quiet_abandoned_io() -> None:
+    """For an orbax save or a failed restore: when a write fails (a full disk) or a read
+    does (a damaged checkpoint), orbax's threads log the error, and the asynchronous
+    reads and writes it abandons report theirs as they finish or are collected (often at
+    exit). `Checkpointer` turns the error into one line; drop those reports (only
+    orbax's), so that the line is all a user sees."""
+    silence_abandoned_reads()
+    absl_log = logging.getLogger("absl")
+    if not any(isinstance(f, _OrbaxThreadErrors) for f in absl_log.filters):
+        absl_log.addFilter(_OrbaxThreadErrors())
+    if not isinstance(sys.unraisablehook, _SkipOrbaxLeftovers):
+        sys.unraisablehook = _SkipOrbaxLeftovers(sys.unraisablehook)
+
+
+class _OrbaxThreadErrors:
+    """A logging filter: drops orbax's log of an exception in one of its threads (the save
+    raises it again)."""
+
+    def filter(self, record) -> bool:
+        return not ("orbax" in record.pathname and "raised an exception" in record.getMessage())
+
+
+class _SkipOrbaxLeftovers:
+    """An unraisable-exception hook that drops the errors of orbax's abandoned writes
+    (coroutines collected unfinished, callbacks into a closed event loop) and passes
+    everything else on."""
+
+    def __init__(self, previous):
+        self.previous = previous
+
+    def __call__(self, unraisable):
+        exc, obj = unraisable.exc_value, unraisable.object
+        code = getattr(obj, "cr_code", None)
+        if (isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed") or (
+                code is not None and "orbax" in code.co_filename) or _through_orbax(unraisable.exc_traceback):
+            return
+        self.previous(unraisable)
 
 
 def _short(message: str, limit: int = 300) -> str:
     """The first line of an error message, at most `limit` characters."""
     line = message.strip().splitlines()[0] if message.strip() else ""
+    line = line.split(" See full TensorStore details")[0]  # tensorstore's spec of the array follows
     return line if len(line) <= limit else line[: limit - 3] + "..."
 

@@ -2,7 +2,8 @@
 
 `train(cfg, workdir)` runs `train.total_frames` frames (or `max_updates` updates) of
 the jitted update, `train.updates_per_call` of them per call (a loop on the device;
-default: `train.log_every`), with the environments split over the local devices;
+default: `train.log_every` on an accelerator, 1 on the CPU, where a loop around the
+update halves its speed), with the environments split over the local devices;
 it writes metrics every `train.log_every` updates and orbax checkpoints every
 `train.checkpoint_every` updates and on exit (Ctrl-C included), all at call
 boundaries. `resume=True` continues the run in `workdir` from its latest checkpoint:
@@ -19,6 +20,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import jax
 import numpy as np
@@ -30,16 +32,19 @@ from a2catvn_jax.agent.update import (NONFINITE, UPDATES, frames_per_update, mak
                                       sharding_of, total_updates)
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.errors import UserError
+from a2catvn_jax.run import distributed
 from a2catvn_jax.run.checkpoint import DATA_FORMAT, Checkpointer, CheckpointError
-from a2catvn_jax.run.logger import Interval, MetricsWriter
+from a2catvn_jax.run.logger import Interval, MetricsWriter, truncate_metrics
+from a2catvn_jax.run.memory import checked_compile
 from a2catvn_jax.run.pretraining import load_matching
+from a2catvn_jax.run.workdir import locked
 
 
 class TrainingError(UserError, RuntimeError):
     """The run cannot go on (a non-finite loss)."""
 
 
-class _StopFlag:
+class StopFlag:
     """Ctrl-C or SIGTERM (as `timeout` and job schedulers send) asks the loop to stop after
     the current update and checkpoint. A second Ctrl-C interrupts; a second SIGTERM is the
     same request again (`timeout` sends one to the command and one to its process group)."""
@@ -70,8 +75,18 @@ def _build(cfg):
 
 
 def devices_for(cfg, devices=None) -> list:
-    """The local devices a run of `cfg` uses: all of them, or the first `devices`; the
-    environments must split evenly over them."""
+    """The devices a run of `cfg` uses: all local ones, or the first `devices`; with
+    several processes (`run.distributed`) every device of every process. The environments
+    must split evenly over them."""
+    if jax.process_count() > 1:
+        if devices is not None:
+            raise TrainingError(f"--devices {devices}: a run of several processes uses every device of each")
+        every = jax.devices()
+        if cfg.env.num_envs % len(every):
+            raise TrainingError(f"env.num_envs={cfg.env.num_envs} environments cannot be split evenly over the "
+                                f"{len(every)} devices of {jax.process_count()} processes: make it a multiple of "
+                                f"{len(every)}")
+        return every
     local = jax.local_devices()
     n = len(local) if devices is None else int(devices)
     if not 1 <= n <= len(local):
@@ -82,32 +97,48 @@ def devices_for(cfg, devices=None) -> list:
     return local[:n]
 
 
-def updates_per_call(cfg) -> int:
-    """Updates one call of the compiled loop runs at most (`train.updates_per_call`, 0: `train.log_every`)."""
-    return cfg.train.updates_per_call or cfg.train.log_every
+def updates_per_call(cfg, platform: Optional[str] = None) -> int:
+    """Updates one call runs at most: `train.updates_per_call`, or by default 1 on the CPU
+    (a device loop around the update runs at half the speed there: docs/benchmarks.md,
+    "Updates per call") and `train.log_every` on an accelerator."""
+    platform = platform or jax.default_backend()
+    return cfg.train.updates_per_call or (1 if platform == "cpu" else cfg.train.log_every)
 
 
-def next_stop(update: int, end: int, cfg) -> int:
-    """The update count the call starting at `update` runs to: the next multiple of the
-    updates per call, of `train.log_every` or of `train.checkpoint_every`, or `end`,
-    whichever comes first (calls align to counts, so a resumed run's calls are the same)."""
+def next_stop(update: int, end: int, cfg, per_call: int) -> int:
+    """The update count the call starting at `update` runs to: the next multiple of
+    `per_call`, of `train.log_every` or of `train.checkpoint_every`, or `end`, whichever
+    comes first (calls align to counts, so a resumed run's calls are the same)."""
     tc = cfg.train
-    return min([end] + [(update // k + 1) * k for k in (updates_per_call(cfg), tc.log_every, tc.checkpoint_every)])
+    return min([end] + [(update // k + 1) * k for k in (per_call, tc.log_every, tc.checkpoint_every)])
 
 
+@locked("train")  # one writer per work directory (run/workdir.py)
 def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: bool = True, log=None, init_from=None,
-          devices=None):
+          devices=None, step=None, stop: Optional["StopFlag"] = None):
     """Train `cfg` in `workdir`; returns (environment, final train state, last log row).
 
     `max_updates` bounds the updates of this call (default: up to train.total_frames);
     `log` receives the text lines (default: print). `init_from` is a pre-training work
     directory (`python -m a2catvn_jax.pretrain`) whose matching parameters a new run
     starts from. `devices`: how many local devices to split the environments over (default: all).
+    `step`: with `resume`, the checkpoint to go on from (default: the latest); the ones after it are removed.
+    `stop`: the `StopFlag` a caller installed for SIGTERM before the run was built (the
+    command line), so that a signal before the first update stops the run there too.
     """
-    log = log or functools.partial(print, flush=True)
+    main = distributed.is_main()  # with several processes, process 0 logs and tidies the work directory
+    log = (log or functools.partial(print, flush=True)) if main else (lambda *_: None)
+    progress = progress and main
     workdir = Path(workdir)
     used = devices_for(cfg, devices)
+    if init_from is not None and jax.process_count() > 1:
+        raise TrainingError("--init-from is not supported in a run of several processes: start it in one process, "
+                            "stop it after its first checkpoint, and --resume it with all of them")
     ckpt = Checkpointer(workdir, keep=cfg.train.keep_checkpoints)
+    if main:
+        ckpt.remove_partial(log)  # half-written checkpoints of a run that stopped while writing one
+    if step is not None and not resume:
+        raise CheckpointError(f"--step {step} chooses the checkpoint to resume from: it needs --resume")
     if ckpt.steps() and not resume:
         raise CheckpointError(
             f"{workdir} already holds checkpoints (updates {ckpt.steps()}); pass --resume to continue that run "
@@ -117,17 +148,41 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     env, networks, (init, update_fn), grad_norms = _build(dataclasses.replace(cfg, seed=0))
     per_update = frames_per_update(cfg)
     where = f" on {len(used)} {used[0].platform} devices" if len(used) > 1 else ""
+    if jax.process_count() > 1:
+        where += f" of {jax.process_count()} processes"
     log(f"built {env.num_scenes} scene(s), {env.num_actions} actions, "
         f"{env.num_envs} environments{where} in {time.perf_counter() - t_build:.1f} s, rendered by {env.world.backend}")
     if env.world.backend_note:
         log(env.world.backend_note)
+    if env.world.backend == "raycast":
+        chunk = env.world.spec.chunk(env.num_envs // len(used))
+        log(f"the ray caster renders {chunk} of each device's {env.num_envs // len(used)} frames per pass "
+            f"(the default on {used[0].platform})")
     key = jax.random.PRNGKey(cfg.seed)
+    template = jax.eval_shape(init, key)
+    layout = None
+    if len(used) > 1:  # the environment axis split over the devices, the rest replicated
+        layout = sharding_of(template, Mesh(np.array(used), ("batch",)))
+    # One compile serves the whole run: the loop of updates is compiled ahead of time for
+    # the abstract state, and a state of other shapes or dtypes would be an error, not a
+    # recompile. Its memory and the state's are checked before either is allocated (run/memory.py).
+    per_call = updates_per_call(cfg, used[0].platform)
+    t_compile = time.perf_counter()
+    run_updates, memory = checked_compile(
+        cfg, env, lambda abstract: repeated(update_fn, layout, loop=per_call > 1).lower(abstract, np.int32(1)).compile(),
+        template, used)
+    log(f"compiled the update in {time.perf_counter() - t_compile:.1f} s; "
+        + (f"{per_call} updates per call" if per_call > 1 else "one update per call")
+        + ("" if cfg.train.updates_per_call else f" (the default on {used[0].platform})"))
+    log(memory)
     if resume:
-        template = jax.eval_shape(init, key)
-        state, meta = ckpt.restore(template, cfg)
+        # With several processes each restores its own shards of the one checkpoint.
+        state, meta = ckpt.restore(template if jax.process_count() == 1 else _placed(template, layout), cfg, step)
         if meta.get("format", 1) < DATA_FORMAT:  # written before the state held its mjx.Data
             state = state.replace(env_state=env.with_data(state.env_state))
         log(f"resumed from update {meta['update']} ({meta['frames']:,} frames)")
+        if main:
+            ckpt.discard_after(int(meta["update"]), log)
     else:
         state = init(key)
         if init_from is not None:
@@ -135,23 +190,21 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
             state = init(key, params)  # the same state with the loaded parameters and their optimiser state
             log(f"initialised from {init_from}: {len(loaded)} arrays of {_modules(loaded)}; "
                 f"{len(kept)} arrays keep their initial values ({_modules(kept)})")
-    layout = None
-    if len(used) > 1:  # the environment axis split over the devices, the rest replicated
-        layout = sharding_of(state, Mesh(np.array(used), ("batch",)))
-        state = jax.device_put(state, layout)
+    if layout is not None:
+        state = place(state, layout)
     if not resume:
         ckpt.save(state, cfg, 0)
-    # One compile serves the whole run: the loop of updates is compiled ahead of time for
-    # this state, and a state of other shapes or dtypes would be an error, not a recompile.
-    t_compile = time.perf_counter()
-    run_updates = repeated(update_fn, layout).lower(state, np.int32(1)).compile()
-    log(f"compiled the update in {time.perf_counter() - t_compile:.1f} s")
     start = int(state.update)
     last = total_updates(cfg)
     end = last if max_updates is None else min(last, start + max_updates)
-    writer = MetricsWriter(workdir)
+    writer = None
+    if main:
+        dropped = truncate_metrics(workdir, start)  # rows past the checkpoint: the run writes them again
+        if dropped:
+            log(f"removed {dropped} row(s) after update {start} from {workdir / 'metrics.jsonl'}: the run logs them again")
+        writer = MetricsWriter(workdir, note=ckpt.last_complete, purge_step=start * per_update + 1 if start else None)
     interval = Interval()
-    stop = _StopFlag()
+    stop = stop or StopFlag()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     bar = None
     if progress:
@@ -161,8 +214,10 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     t_log, frames_log = time.perf_counter(), start * per_update
     try:
         update = start
-        while update < end and not stop.stop:
-            n = next_stop(update, end, cfg) - update
+        # Every process asks the others at each call: a signal that reaches them a moment
+        # apart stops all of them after the same update.
+        while update < end and not distributed.any_process(stop.stop):
+            n = next_stop(update, end, cfg, per_call) - update
             new_state, sums = run_updates(state, np.int32(n))
             sums = jax.device_get(sums)
             bad_at = int(sums.pop(NONFINITE))
@@ -184,7 +239,8 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
                        **interval.row()}
                 if grad_norms is not None and update % cfg.train.grad_norm_every == 0:
                     row.update({k: float(v) for k, v in jax.device_get(grad_norms(state)).items()})
-                writer.write(row)
+                if writer is not None:
+                    writer.write(row)
                 interval.reset()
                 t_log, frames_log = now, frames
                 if bar is not None:
@@ -197,18 +253,34 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
                 ckpt.save(state, cfg, update * per_update)
         clean_exit = True
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
         if bar is not None:
             bar.close()
-        writer.close()
+        if writer is not None:
+            writer.close()
         # After a failure the state handed to the loop is gone (its buffers are donated):
-        # the last checkpoint stays the run's last good state.
-        if clean_exit:
-            saved = ckpt.save(state, cfg, int(state.update) * per_update)
-            log(f"checkpoint at update {saved} in {ckpt.directory}")
-        ckpt.close()
+        # the last checkpoint stays the run's last good state. The stop handler stays in
+        # place while the last checkpoint is written (all processes write it together).
+        try:
+            if clean_exit:
+                saved = ckpt.save(state, cfg, int(state.update) * per_update)
+                log(f"checkpoint at update {saved} in {ckpt.directory}")
+            ckpt.close()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     return env, state, row
+
+
+def place(tree, layout):
+    """`tree` laid out as `layout` (a tree of shardings): arrays already placed so stay,
+    the others (the same value in every process) are put there from host memory."""
+    return jax.tree_util.tree_map(
+        lambda x, s: x if getattr(x, "sharding", None) == s else jax.device_put(np.asarray(x), s), tree, layout)
+
+
+def _placed(template, layout):
+    """The abstract `template` with each leaf's sharding: what a checkpoint restores into."""
+    return jax.tree_util.tree_map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), template, layout)
 
 
 def _modules(paths) -> str:
