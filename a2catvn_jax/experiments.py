@@ -19,6 +19,7 @@ Experiments (`EXPERIMENTS`):
   curriculum      with vs without the complexity curriculum
   generalisation  room-type goals over 64 houses (16 at paper scale), A2CAT-VN and blind; held-out houses and new targets
   navigation      room-type goals over 64 houses: A2CAT-VN with the clip at 40 or without reward prediction, and blind
+  batch           B 16 against B 64 and 256 with Table I's settings and with LAMB and a sqrt-scaled learning rate
   clipping        A2CAT-VN with the gradient-norm clip of Table I (0.5) vs 40, and A2C
   grid            the grid action set on small rooms (A2CAT-VN vs A2C)
   aux_every       the depth and segmentation losses on every frame vs every 4th (train.aux_every)

@@ -23,6 +23,15 @@ AUX_LOSSES = ("off_policy_critic", "pixel_control", "reward_prediction", "depth"
 NO_VN = ("train.loss_weights.depth=0", "train.loss_weights.segmentation=0", "train.loss_weights.target_segmentation=0")
 NO_RP = "train.loss_weights.reward_prediction=0"
 NO_UNREAL = ("train.loss_weights.off_policy_critic=0", "train.loss_weights.pixel_control=0", NO_RP)
+LARGE_BATCH = ("train.optimizer=lamb", "train.lr_scaling=sqrt")  # the large-batch candidate of the batch experiment
+
+
+def batch(envs: int) -> tuple[str, ...]:
+    """Overrides for `envs` environments, logged and checkpointed about as often in frames as 16 are."""
+    per = max(1, envs // 16)
+    return (f"env.num_envs={envs}", f"train.log_every={max(1, 25 // per)}", f"train.checkpoint_every={max(10, 500 // per)}")
+
+
 CLIP_40 = "train.max_grad_norm=40"  # above every gradient norm measured on the house task
 BLIND = ("agent.blind=true",)  # agent.blind=both
 # The loss and replay settings of the authors' published code where they differ from the
@@ -200,6 +209,18 @@ EXPERIMENTS = {e.name: e for e in (
         paper="The paper computes the depth and segmentation losses on every frame. Every 4th frame divides "
               "their memory and time by about 4 (what lets thousands of environments train in memory); this "
               "measures what it costs learning. The A2CAT-VN runs are the aux experiment's.",
+    ),
+    Experiment(
+        "batch", "larger batches: Table I's settings against a large-batch optimiser and a scaled learning rate",
+        "image_goals",
+        (Variant("B 16"),
+         Variant("B 64, Table I", batch(64)), Variant("B 256, Table I", batch(256)),
+         Variant("B 64, LAMB, sqrt-scaled lr", batch(64) + LARGE_BATCH),
+         Variant("B 256, LAMB, sqrt-scaled lr", batch(256) + LARGE_BATCH), BLIND_CONTROL),
+        evaluations=("train",),
+        paper="Table I trains 16 environments. At the same frame budget B environments make 16 / B as many "
+              "updates; the large-batch candidate is LAMB (a layer-wise trust ratio) with the learning rate "
+              "scaled by sqrt(B / 16).",
     ),
     Experiment(
         "grid", "grid actions on small rooms: A2CAT-VN vs A2C", "grid",
