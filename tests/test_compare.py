@@ -12,7 +12,7 @@ from scipy import stats
 
 from a2catvn_jax import experiments as cli
 from a2catvn_jax.study import compare
-from a2catvn_jax.study.report import format_estimate
+from a2catvn_jax.study.formats import format_estimate
 
 GRAD_NORMS = {  # per variant, per run: the logged gradient norms
     "slow": [[0.6, 0.7, 0.4, 0.9], [0.8, 0.3, 0.55, 1.2]],

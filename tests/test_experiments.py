@@ -21,7 +21,7 @@ from a2catvn_jax import experiments as cli
 from a2catvn_jax.config import CONFIGS, Config, load_config, to_dict
 from a2catvn_jax.errors import Interrupted
 from a2catvn_jax.run.plots import smooth
-from a2catvn_jax.study import compare, registry, report, runner, stats
+from a2catvn_jax.study import compare, formats, registry, report, runner, stats
 from a2catvn_jax.study import store as st
 from a2catvn_jax.study.registry import EXPERIMENTS, ExperimentError, Variant
 from tiny import TINY_LEARNER
@@ -170,7 +170,7 @@ def test_statistics():
     # 16 rows: the last 2 vs the 2 before
     assert stats.late_change(rows[:12] + rows[-4:][::-1]) == pytest.approx(0.5 - 0.7)
     assert math.isnan(stats.late_change(rows[:1]))
-    assert report.format_estimate([0.05, -0.01, 0.03], -1.0, 1.0, "{:+.2f}".format) == "+0.02 [-0.05, +0.10]"
+    assert formats.format_estimate([0.05, -0.01, 0.03], -1.0, 1.0, "{:+.2f}".format) == "+0.02 [-0.05, +0.10]"
 
 
 def test_t_interval_by_hand():
@@ -180,20 +180,20 @@ def test_t_interval_by_hand():
     half = 2.776445 * math.sqrt(0.1 / 4) / math.sqrt(5)
     assert est.n == 5 and est.mean == pytest.approx(0.7)
     assert est.low == pytest.approx(0.7 - half, abs=1e-6) and est.high == pytest.approx(0.7 + half, abs=1e-6)
-    assert report.format_estimate([0.5, 0.6, 0.7, 0.8, 0.9]) == "0.70 [0.50, 0.90]"
+    assert formats.format_estimate([0.5, 0.6, 0.7, 0.8, 0.9]) == "0.70 [0.50, 0.90]"
     # clipped to the possible range; one value: no interval; missing values are counted
-    assert report.format_estimate([0.9, 1.0]) == "0.95 [0.31, 1.00]"
-    assert report.format_estimate([0.25]) == "0.25"
-    assert report.format_estimate([0.5, None, 0.7, math.nan]) == "0.60 [0.00, 1.00] (n=2)"
-    assert report.format_estimate([None, None]) == "–"
+    assert formats.format_estimate([0.9, 1.0]) == "0.95 [0.31, 1.00]"
+    assert formats.format_estimate([0.25]) == "0.25"
+    assert formats.format_estimate([0.5, None, 0.7, math.nan]) == "0.60 [0.00, 1.00] (n=2)"
+    assert formats.format_estimate([None, None]) == "–"
 
 
 def test_frames_to_threshold_formatting():
     # reached: 400k, 500k; t(0.975, 1) = 12.706 x standard error 50k: [-185k, 1085k], clipped at 0
-    assert report.format_frames([400e3, None, 500e3], 2e6) == "450k [0, 1.1M], 2/3 reached; 1 not by 2.0M"
-    assert report.format_frames([300e3, 300e3], 4e5) == "300k [300k, 300k], 2/2 reached"
-    assert report.format_frames([300e3], 4e5) == "300k, 1/1 reached"
-    assert report.format_frames([None, None, None], 4e5) == "0/3 reached by 400k"
+    assert formats.format_frames([400e3, None, 500e3], 2e6) == "450k [0, 1.1M], 2/3 reached; 1 not by 2.0M"
+    assert formats.format_frames([300e3, 300e3], 4e5) == "300k [300k, 300k], 2/2 reached"
+    assert formats.format_frames([300e3], 4e5) == "300k, 1/1 reached"
+    assert formats.format_frames([None, None, None], 4e5) == "0/3 reached by 400k"
     p = stats.welch_p([100.0, 110.0, 120.0], [400.0, 400.0, 390.0])
     assert p == pytest.approx(scipy.stats.ttest_ind([100, 110, 120], [400, 400, 390], equal_var=False).pvalue)
     assert stats.welch_p([1.0], [2.0, 3.0]) is None and stats.welch_p([4.0, 4.0], [4.0, 4.0]) is None
@@ -307,7 +307,10 @@ def test_tiny_experiment_trains_stores_and_reports(trained):
         assert e["eval_seed"] == [1000, 1001] and e["episodes"] == [2, 2]
         assert e["pooled"]["episodes"] == 4 and e["pooled"]["successes"] == sum(e["successes"])
     assert json.loads((store / "cpu" / "tiny.json").read_text())["variants"]["b"]["eval"] == summary["variants"]["b"]["eval"]
-    assert (root / "docs" / "experiments" / "tiny_cpu.png").stat().st_size > 0
+    from matplotlib.image import imread
+
+    figure = imread(root / "docs" / "experiments" / "tiny_cpu.png")  # two panels of curves, bands and lines
+    assert figure.shape[1] > figure.shape[0] > 100 and len(np.unique(figure.reshape(-1, figure.shape[-1]), axis=0)) > 20
     assert "<!-- experiment tiny cpu -->" in text and "| b |" in text
     assert "| uniformly random policy | – | – |" in text and "| shortest-path oracle | – | – |" in text
     assert "95% t-interval" in text and "Seeds: 0, 1 (2 runs per variant)" in text
@@ -559,8 +562,8 @@ def test_a_stored_report_compares_with_another_experiments(trained, from_store):
              for line in (store / rel / "metrics.jsonl").read_text().splitlines()]
     assert a.endswith(f"| {sum(g > 0.5 for g in norms)}/{len(norms)} (clip 0.5) |")  # the default clip
     v = summary["variants"]["a"]
-    frames = report.format_frames(v["frames_to_threshold"], v["frames_max"])
-    final = report.format_estimate(v["final_success"])
+    frames = formats.format_frames(v["frames_to_threshold"], v["frames_max"])
+    final = formats.format_estimate(v["final_success"])
     assert f"| {frames} | {final} |" in a
     assert "each log row holds one update's" in text  # TINY logs every update
     b, = [line for line in text.splitlines() if line.startswith("| b (tiny) |")]
@@ -662,9 +665,9 @@ def test_summary_censors_frames_to_threshold_and_pools_episodes():
                    not_stored=[])
     text = report.section(exp, "cpu", summary, "cmd", "img.png")
     row_a, = [line for line in text.splitlines() if line.startswith("| a | 300k, 1/2 reached; 1 not by 1.0M |")]
-    assert f"| {report.format_rmst(va['rmst_frames'])} |" in row_a
+    assert f"| {formats.format_rmst(va['rmst_frames'])} |" in row_a
     greedy_b, = [line for line in text.splitlines() if line.startswith("| b | greedy |")]
-    assert f"| {report.format_pooled(greedy['train']['pooled'], 2)} |" in greedy_b and greedy_b.endswith("| – | – | – |")
+    assert f"| {formats.format_pooled(greedy['train']['pooled'], 2)} |" in greedy_b and greedy_b.endswith("| – | – | – |")
     assert "| shortest-path oracle | – | – | 1.00 [0.72, 1.00] | 0.10 | – | 0.90 [0.60, 0.98] | 0.10 |" in text
     p = vb["logrank_p_frames_vs_first"]
     assert (f"Log-rank test on frames to threshold against a, a run that never reaches it censored at its last "

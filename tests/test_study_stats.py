@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from a2catvn_jax.study import report, stats
+from a2catvn_jax.study import formats, stats
 
 
 @pytest.mark.parametrize("k, n", [(43, 100), (0, 100), (100, 100), (1, 3), (207, 500), (5, 7)])
@@ -37,9 +37,9 @@ def test_pooled_success_pools_the_runs_episodes():
     assert pooled["rate"] == pytest.approx(0.42)
     assert (pooled["low"], pooled["high"]) == pytest.approx((ci.low, ci.high))
     assert stats.pooled_success([None], [None]) is None
-    assert report.format_pooled(pooled) == "0.42 [0.36, 0.48]"
-    assert report.format_pooled(pooled, runs=4) == "0.42 [0.36, 0.48] (n=3)"
-    assert report.format_pooled(None) == "–"
+    assert formats.format_pooled(pooled) == "0.42 [0.36, 0.48]"
+    assert formats.format_pooled(pooled, runs=4) == "0.42 [0.36, 0.48] (n=3)"
+    assert formats.format_pooled(None) == "–"
 
 
 def test_episode_successes_from_the_per_episode_list_else_the_rate():
@@ -80,13 +80,13 @@ def test_restricted_mean_without_censoring_is_the_mean():
 def test_restricted_mean_of_runs_that_never_reach_and_past_the_horizon():
     none = stats.restricted_mean([5e6] * 5, [False] * 5, 5e6)
     assert (none["mean"], none["low"], none["high"], none["se"], none["events"]) == (5e6, 5e6, 5e6, 0.0, 0)
-    assert report.format_rmst(none) == "5.0M (none reached)"
+    assert formats.format_rmst(none) == "5.0M (none reached)"
     # A run that reaches the threshold after the horizon counts as one not reached by then.
     late = stats.restricted_mean([1.0, 2.0, 8.0], [True, True, True], 5.0)
     censored = stats.restricted_mean([1.0, 2.0, 8.0], [True, True, False], 5.0)
     assert late["mean"] == pytest.approx(censored["mean"]) and late["mean"] == pytest.approx(1.0 + 2.0 / 3.0 + 1.0)
     assert late["se"] == pytest.approx(censored["se"]) and late["events"] == 2
-    assert report.format_rmst({**late, "mean": 2.1e6, "low": 1.6e6, "high": 2.6e6}) == "2.1M [1.6M, 2.6M]"
+    assert formats.format_rmst({**late, "mean": 2.1e6, "low": 1.6e6, "high": 2.6e6}) == "2.1M [1.6M, 2.6M]"
     with pytest.raises(ValueError, match="one time and one reached flag per run"):
         stats.restricted_mean([1.0, 2.0], [True], 3.0)
 

@@ -27,7 +27,7 @@ import numpy as np
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.run.checkpoint import CheckpointError, read_run_config
 from a2catvn_jax.study.registry import EVAL_SETS, EXPERIMENTS
-from a2catvn_jax.study.report import format_estimate, format_frames, frames_text, seeds_text
+from a2catvn_jax.study.formats import format_estimate, format_frames, frames_text, seeds_text
 from a2catvn_jax.study.stats import welch_p
 from a2catvn_jax.study.store import DEFAULT_STORE
 

@@ -32,20 +32,17 @@ import functools
 import hashlib
 import json
 import math
-import os
-import platform
 import shutil
-import subprocess
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
-import jax
 
 from a2catvn_jax.agent.update import total_updates
 from a2catvn_jax.config import Config, load_config, save_config, to_dict
 from a2catvn_jax.run.checkpoint import CONFIG_FILE, Checkpointer
 from a2catvn_jax.run.evaluation import to_json
 from a2catvn_jax.run.logger import read_jsonl
+from a2catvn_jax.study import provenance
 from a2catvn_jax.study.registry import Experiment, Variant
 from a2catvn_jax.study.stats import RunRecord
 
@@ -249,33 +246,6 @@ def stored_result(result: dict) -> dict:
     return rounded({k: v for k, v in result.items() if k not in ("workdir", "video")})
 
 
-def git_commit() -> Optional[dict]:
-    """The commit of the package's checkout and whether tracked files differ from it (None outside git)."""
-    here = Path(__file__).resolve().parent
-    try:
-        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=30)
-        if sha.returncode:
-            return None
-        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                                capture_output=True, text=True, timeout=30)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return {"commit": sha.stdout.strip(), "dirty": bool(status.stdout.strip()) if status.returncode == 0 else None}
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    devices = ", ".join(sorted({d.device_kind for d in jax.devices()}))
-    return f"{os.cpu_count()}-core {cpu}; jax {jax.__version__} on {jax.default_backend()} ({devices})"
-
-
 def store_run(run: Run, evals: dict) -> None:
     """Copy the small results of the finished, evaluated `run` (policy -> houses -> result,
     each named by its own policy, episodes and seed) to its stored directory; done.json
@@ -303,7 +273,7 @@ def store_run(run: Run, evals: dict) -> None:
         (d / "experiment_time.json").write_text(json.dumps({"seconds": round(seconds, 1)}) + "\n")
     done = {"updates": total_updates(run.cfg), "frames": rows[-1]["frames"] if rows else None,
             "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "machine": machine(), "git": git_commit()}
+            "machine": provenance.machine(), "git": provenance.git_commit()}
     (d / DONE).write_text(json.dumps(done, indent=1) + "\n")
 
 
