@@ -5,7 +5,7 @@ Each leaf's annotation gives its type and, through pydantic's `Field`, its range
 list-valued keys are fixed-length tuples. Types are strict: an int key takes no bool,
 float or digit string; a float key takes ints (as floats) but no bool, string, nan or
 inf; a boolean key takes only true/false. Adding a section is a matter of writing a
-`_Section` dataclass and adding it as a field (with `field(default_factory=...)`) of its
+`Section` dataclass and adding it as a field (with `field(default_factory=...)`) of its
 parent; checks involving several keys are the section's `_cross_checks`. Building a
 dataclass directly (`EnvConfig(...)`, `dataclasses.replace`) does not validate;
 `.validate()` does. Constants that the schema checks and other layers use
@@ -32,9 +32,9 @@ from typing import Annotated, Any, Literal, Optional, TypeVar
 from pydantic import BeforeValidator, Field, Strict
 
 from a2catvn_jax import configio
-from a2catvn_jax.configio import (  # noqa: F401  (_Section: the sections' base; the rest re-exported)
+from a2catvn_jax.configio import (  # noqa: F401  (Section: the sections' base; the rest re-exported)
     ConfigError,
-    _Section,
+    Section,
     apply_overrides,
     from_dict,
     parse_override,
@@ -114,7 +114,7 @@ Quad = Annotated[tuple[T, T, T, T], Strict(), BeforeValidator(_list_as_tuple)]
 
 
 @dataclass(frozen=True)
-class SceneConfig(_Section):
+class SceneConfig(Section):
     """Which scenes (houses, rooms, mazes or a user MJCF file) the batch is built from."""
 
     kind: Literal["house", "room", "maze", "mjcf"] = "house"
@@ -141,7 +141,7 @@ class SceneConfig(_Section):
 
 
 @dataclass(frozen=True)
-class RenderConfig(_Section):
+class RenderConfig(Section):
     """Camera images: resolution, field of view and renderer knobs."""
 
     image_size: Int = 64  # square images, pixels
@@ -160,7 +160,7 @@ class RenderConfig(_Section):
 
 
 @dataclass(frozen=True)
-class EnvConfig(_Section):
+class EnvConfig(Section):
     """The batched navigation environment: agents, goals, episodes, noise, curriculum."""
 
     num_envs: Count = 16  # B
@@ -198,7 +198,7 @@ class EnvConfig(_Section):
 
 
 @dataclass(frozen=True)
-class AgentConfig(_Section):
+class AgentConfig(Section):
     """The network: conv base (shared observation/target stream), memory, heads."""
 
     memory: Literal["lstm", "frame_stack"] = "lstm"  # LSTM, or the last `stack` frames and a dense layer
@@ -266,7 +266,7 @@ class AgentConfig(_Section):
 
 
 @dataclass(frozen=True)
-class LossWeights(_Section):
+class LossWeights(Section):
     """Weight of each loss term (paper, Table I). A weight of 0 removes the term's computation."""
 
     actor: NonNegative = 1.0
@@ -281,7 +281,7 @@ class LossWeights(_Section):
 
 
 @dataclass(frozen=True)
-class TrainConfig(_Section):
+class TrainConfig(Section):
     """Batched A2C with off-policy critic and auxiliary tasks; optimiser; run bookkeeping."""
 
     total_frames: Count = 40_000_000  # f_max: agent steps over all environments
@@ -340,7 +340,7 @@ class TrainConfig(_Section):
 
 
 @dataclass(frozen=True)
-class PretrainConfig(_Section):
+class PretrainConfig(Section):
     """Supervised pre-training of the conv base with the depth / segmentation heads (paper, Table I)."""
 
     dataset_size: Count = 200_000  # observations at random poses in the training scenes
@@ -350,7 +350,7 @@ class PretrainConfig(_Section):
 
 
 @dataclass(frozen=True)
-class Config(_Section):
+class Config(Section):
     """Root of the configuration tree."""
 
     seed: Seed = 0  # master PRNG seed

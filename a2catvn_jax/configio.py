@@ -2,7 +2,7 @@
 
 Sits below the schema (`a2catvn_jax.config`, which binds its `Config` as the default
 root and does not need to be imported here): every function takes the root dataclass
-type, or works on an instance's type. It holds `ConfigError`, the `_Section` base
+type, or works on an instance's type. It holds `ConfigError`, the `Section` base
 class of the sections, the strict YAML loader and dumper, the parsing and application
 of "dotted.key=value" overrides, `from_dict` / `to_dict`, and the translation of
 pydantic's structured errors into one-line `ConfigError`s with the likely key meant.
@@ -72,12 +72,12 @@ def _join(path: str, name: str) -> str:
 class _CrossCheckFailed(ValueError):
     """Raised by the model validator; `from_dict` asks the section for its messages with full keys."""
 
-    def __init__(self, section: _Section):
+    def __init__(self, section: Section):
         super().__init__(f"{type(section).__name__}: cross-field check failed")
         self.section = section
 
 
-class _Section:
+class Section:
     """Base of the sections: the pydantic settings and the hooks every section shares."""
 
     __pydantic_config__ = ConfigDict(extra="forbid", allow_inf_nan=False)

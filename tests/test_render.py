@@ -449,7 +449,7 @@ def test_culling_changes_nothing(generated, frames):
 
 
 def test_level_cameras_take_the_level_trace(level, monkeypatch):
-    """`render_batch` without culling traces a chunk by `_trace_level` exactly when all
+    """`render_batch` without culling traces a chunk by `trace_level` exactly when all
     its cameras are level: with that function replaced by one that marks every pixel,
     the level chunks (the remainder chunk included) are marked and the chunk with a
     tilted camera is not."""
@@ -458,7 +458,7 @@ def test_level_cameras_take_the_level_trace(level, monkeypatch):
         shape = dirs.shape[:2]
         return jnp.full(shape, 1.0, jnp.float32), jnp.full(shape, -7, jnp.int32)
 
-    monkeypatch.setattr(render_lib, "_trace_level", marked)
+    monkeypatch.setattr(render_lib, "trace_level", marked)
     b = level
     f = _numpy(jax.jit(functools.partial(render_batch, spec=b.spec))(*b.args()))
     chunk = b.spec.chunk(len(b.scene))

@@ -53,13 +53,13 @@ def main() -> None:
     cfg = load_config(a.config)
     steps = cfg.train.rollout_length
     built = {"as it is": _build(cfg, steps)}
-    saved = render._trace_level, navenv._uniform_index
-    render._trace_level = lambda geom, cam_pos, yaw, dirs, spec: render._trace(geom, cam_pos, dirs)
-    navenv._uniform_index = _running_count_index
+    saved = render.trace_level, navenv.uniform_index
+    render.trace_level = lambda geom, cam_pos, yaw, dirs, spec: render.trace(geom, cam_pos, dirs)
+    navenv.uniform_index = _running_count_index
     try:
         built["both off"] = _build(cfg, steps)
     finally:
-        render._trace_level, navenv._uniform_index = saved
+        render.trace_level, navenv.uniform_index = saved
     # The same function: the first update of each, from the same initial state.
     states, first = {}, {}
     for k, (_, _, update, state) in built.items():

@@ -3,7 +3,7 @@
 `python -m a2catvn_jax.benchmark render` runs `measure` once per renderer, batch size
 and resolution, each in its own process pinned to `--cores` CPU cores (default one, so
 the figures are frames per second per core). Every renderer draws the same house
-(`throughput._env_config`: one generated 2x3-room house) from the same camera poses (a
+(`throughput.env_config`: one generated 2x3-room house) from the same camera poses (a
 short random-action rollout, seed 0), with RGB, depth and segmentation:
 
 - `raycast`: this project's ray caster (`World.render`, backend raycast) inside `jax.jit`;
@@ -67,11 +67,11 @@ def measure(renderer: str, batch: int, resolution: int, repeats: int = 5, sets: 
     import jax
     import jax.numpy as jnp
 
-    from a2catvn_jax.bench.throughput import _env_config
+    from a2catvn_jax.bench.throughput import env_config
     from a2catvn_jax.env import NavEnv
 
     backend = "raycast" if renderer == "warp" else renderer
-    env = NavEnv(_env_config(batch, resolution, [f"env.render.backend={backend}"]))
+    env = NavEnv(env_config(batch, resolution, [f"env.render.backend={backend}"]))
     world = env.world
     poses = _poses(env, sets)
     scene = jnp.zeros(batch, jnp.int32)

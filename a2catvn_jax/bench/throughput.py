@@ -16,7 +16,7 @@ from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import NavEnv
 
 
-def _env_config(batch: int, resolution: int, overrides):
+def env_config(batch: int, resolution: int, overrides):
     return load_config(
         None,
         [
@@ -32,7 +32,7 @@ def _env_config(batch: int, resolution: int, overrides):
 
 
 def bench_env(batch: int, resolution: int, steps: int, overrides=(), world=None) -> dict:
-    cfg = _env_config(batch, resolution, overrides)
+    cfg = env_config(batch, resolution, overrides)
     env = NavEnv(cfg, world=world)
     reset = jax.jit(env.reset)
     step = jax.jit(env.step)

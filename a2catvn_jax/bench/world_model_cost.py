@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from a2catvn_jax.config import load_config
-from a2catvn_jax.env.navenv import NavEnv, _where
+from a2catvn_jax.env.navenv import NavEnv, select_where
 
 
 def main() -> None:
@@ -30,7 +30,7 @@ def main() -> None:
 
     def data_work(s, done):
         fresh = env.world.scene_data(w, s.info.scene)
-        d = jax.tree_util.tree_map(lambda x, y: _where(done, x, y), fresh, s.data)
+        d = jax.tree_util.tree_map(lambda x, y: select_where(done, x, y), fresh, s.data)
         return env.world.place_agent(d, s.info.pose)
 
     data_fn = jax.jit(data_work)

@@ -25,7 +25,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from flax import struct
 from mujoco import mjx
 
 from a2catvn_jax.env import camera

@@ -228,7 +228,7 @@ class NavEnv:
             w, info.scene, info.pose, jnp.asarray(action, jnp.int32), noise_key, self._moving_footprints(state.data))
         if self._seen:  # the streak up to the current observation decides; the move is not made
             success = info.view_streak >= self.cfg.view_steps
-            pose = _where(success, info.pose, pose)
+            pose = select_where(success, info.pose, pose)
             moved = jnp.where(success, 0.0, moved)
         else:
             success = jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose)
@@ -245,8 +245,8 @@ class NavEnv:
             w, keys, scene, info.complexity, self._moving_footprints(fresh_data))
         fresh = self._episode_info(w, start, scene, info.complexity, keys)
         ended = ended.replace(key=keys)
-        new_info = jax.tree_util.tree_map(lambda a, b: _where(done, a, b), fresh, ended)
-        data = jax.tree_util.tree_map(lambda a, b: _where(done, a, b), fresh_data, state.data)
+        new_info = jax.tree_util.tree_map(lambda a, b: select_where(done, a, b), fresh, ended)
+        data = jax.tree_util.tree_map(lambda a, b: select_where(done, a, b), fresh_data, state.data)
         data = self.world.place_agent(data, new_info.pose)
         frame = self._render(w, new_info.scene, new_info.pose, data)
         new_info = self._count_views(w, new_info, frame, ~done)
@@ -407,7 +407,7 @@ class NavEnv:
             obstacles = jnp.concatenate([w.obstacles[scene], moving])
         else:
             obstacles = w.obstacles[scene]
-        cell = _uniform_index(kc, ok.reshape(-1))
+        cell = uniform_index(kc, ok.reshape(-1))
         i, j = cell // W, cell % W
         res = self.cfg.grid_resolution
         centre = w.grid_origin[scene] + (jnp.stack([j, i]).astype(jnp.float32) + 0.5) * res
@@ -495,7 +495,7 @@ def action_names(cfg: EnvConfig) -> tuple[str, ...]:
     return tuple(name for name, _ in ACTION_SETS[cfg.action_set])
 
 
-def _uniform_index(key, mask, block: int = 128):
+def uniform_index(key, mask, block: int = 128):
     """An index drawn uniformly among the True entries of `mask` [N]: the k-th of them in
     order, k uniform. Padding `mask` with False entries anywhere after or between the
     True ones does not change which of them is drawn.
@@ -522,5 +522,5 @@ def _wrap(angle):
     return jnp.arctan2(jnp.sin(angle), jnp.cos(angle))
 
 
-def _where(mask, a, b):
+def select_where(mask, a, b):
     return jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b)

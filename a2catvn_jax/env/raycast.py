@@ -285,7 +285,7 @@ def _nearest(hit, params: dict, rays, carry):
     return jax.lax.fori_loop(0, padded // unroll, body, carry)
 
 
-def _trace(geom: Geometry, cam_pos, dirs, cands=None, carry=None, families=FAMILIES):
+def trace(geom: Geometry, cam_pos, dirs, cands=None, carry=None, families=FAMILIES):
     """Nearest hit per ray of dirs [T, R, 3] (rays grouped by tile) among the per-tile
     candidates `cands` (from `_tile_candidates`), or among all geoms if None, of the
     geom families `families`, starting from the nearest hits `carry` (default: none).
@@ -345,14 +345,14 @@ def _hit_level_box(p, _):
     return _first_hit(jnp.maximum(p["nc"], p["nr"]), jnp.minimum(p["fc"], p["fr"]))
 
 
-def _trace_level(geom: Geometry, cam_pos, yaw, dirs, spec: CameraSpec):
-    """`_trace` against every geom for a camera without tilt (rays dirs [1, W * H, 3],
+def trace_level(geom: Geometry, cam_pos, yaw, dirs, spec: CameraSpec):
+    """`trace` against every geom for a camera without tilt (rays dirs [1, W * H, 3],
     column-major), its world-aligned boxes by `_level_boxes`."""
     boxes, rest = geom.families["abox"], tuple(f for f in FAMILIES if f != "abox")
     if not boxes.count:
-        return _trace(geom, cam_pos, dirs, families=rest)
+        return trace(geom, cam_pos, dirs, families=rest)
     carry = tuple(a.reshape(1, -1) for a in _level_boxes(boxes, cam_pos, yaw, spec))
-    return _trace(geom, cam_pos, dirs, carry=carry, families=rest)
+    return trace(geom, cam_pos, dirs, carry=carry, families=rest)
 
 
 def _pattern_factor(pattern, p):
@@ -418,7 +418,7 @@ def _culled_trace(geom: Geometry, cam_pos, tiled, dirs, spec: CameraSpec):
     """Culled nearest hits of the rays tiled [T, R, 3] and which tiles failed the
     check: (t, geom id) [T, R], bad [T]."""
     cands, far = _tile_candidates(geom, cam_pos, dirs, spec)
-    t, gid = _trace(geom, cam_pos, tiled, cands)
+    t, gid = trace(geom, cam_pos, tiled, cands)
     # Geoms were skipped only beyond `far`: a ray whose hit is no farther than that
     # (horizontally) has found its true nearest hit.
     reach = t * jnp.sqrt(tiled[..., 0] ** 2 + tiled[..., 1] ** 2)
@@ -435,7 +435,7 @@ def _retrace_tiles(geom: Geometry, cam_pos, tiled, t, gid, bad):
     def body(carry):
         t, gid, bad = carry
         k = jnp.argmax(bad)
-        tk, gk = _trace(geom, cam_pos, tiled[k][None])
+        tk, gk = trace(geom, cam_pos, tiled[k][None])
         return t.at[k].set(tk[0]), gid.at[k].set(gk[0]), bad.at[k].set(False)
 
     t, gid, _ = jax.lax.while_loop(cond, body, (t, gid, bad))
@@ -454,14 +454,14 @@ def _hits(geom: Geometry, cam_pos, yaw, dirs, tiled, spec: CameraSpec, culled: b
           level: bool = False):
     """One camera's nearest hits (t, geom id) [W, H] and whether culling fell back.
     `level`: the camera has no tilt (the caller checked), so the unculled trace is
-    `_trace_level`'s."""
+    `trace_level`'s."""
     if culled:
         t, gid, bad = _culled_trace(geom, cam_pos, tiled, dirs, spec)
         if exact:
             t, gid = _retrace_tiles(geom, cam_pos, tiled, t, gid, bad)
         fallback = jnp.any(bad)
     else:
-        t, gid = _trace_level(geom, cam_pos, yaw, tiled, spec) if level else _trace(geom, cam_pos, tiled)
+        t, gid = trace_level(geom, cam_pos, yaw, tiled, spec) if level else trace(geom, cam_pos, tiled)
         fallback = jnp.bool_(False)
     return t.reshape(spec.width, spec.height), gid.reshape(spec.width, spec.height), fallback
 
@@ -492,7 +492,7 @@ def render_batch(geometry: Geometry, scene, cam_pos, yaw, tilt, spec: CameraSpec
 
     Frames are rendered `spec.chunk(B)` at a time. Tiles of culled frames that fail
     their check are re-traced against every geom (`fallback` flags those frames).
-    Unculled chunks whose cameras all have no tilt take `_trace_level`."""
+    Unculled chunks whose cameras all have no tilt take `trace_level`."""
     culled = spec.candidates > 0
     where, gids = (moving[0], moving[1]) if moving is not None else ((), ())
     poses = (moving[2], moving[3]) if moving is not None else ()
