@@ -1,4 +1,5 @@
 import atexit
+import json
 import os
 import shutil
 import subprocess
@@ -50,14 +51,40 @@ for _flag in os.environ["A2CATVN_TEST_XLA_FLAGS"].split():
 
 
 # pytest-xdist (`--dist loadfile`) hands whole files to its workers in collection order.
-# The longest files go first (measured with `--durations`), so that the workers' last
-# files are short ones and the two finish close together; within a file the order stays.
-_LONGEST_FIRST = ("test_learner_math.py", "test_env.py", "test_learning.py", "test_notebooks.py", "test_train.py",
-                  "test_evaluate.py", "test_networks.py", "test_backends.py", "test_experiments.py", "test_profile.py",
-                  "test_success.py", "test_env_contract.py", "test_replay_warmup.py", "test_pretrain.py",
-                  "test_render.py", "test_sharding.py", "test_checkpoint_format.py")
+# The longest files go first, so that the workers' last files are short ones and the two
+# finish close together; within a file the order stays. The order comes from the seconds
+# each file took when last measured (tests/durations.json, written by
+# `pytest --record-durations`); a file not measured yet counts as the longest.
+_DURATIONS = Path(__file__).with_name("durations.json")
+
+
+def pytest_addoption(parser):
+    parser.addoption("--record-durations", action="store_true",
+                     help=f"write each test file's seconds (setup, call, teardown) to {_DURATIONS.name}")
+
+
+def _durations() -> dict:
+    try:
+        return json.loads(_DURATIONS.read_text())
+    except (OSError, ValueError):
+        return {}
 
 
 def pytest_collection_modifyitems(session, config, items):
-    rank = {name: i for i, name in enumerate(_LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(Path(str(item.fspath)).name, len(rank)))
+    seconds = _durations()
+    longest = max(seconds.values(), default=0.0) + 1.0
+    items.sort(key=lambda item: -seconds.get(Path(str(item.fspath)).name, longest))
+
+
+_MEASURED: dict = {}
+
+
+def pytest_runtest_logreport(report):
+    name = Path(report.nodeid.split("::")[0]).name
+    _MEASURED[name] = _MEASURED.get(name, 0.0) + report.duration
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if session.config.getoption("--record-durations") and _MEASURED and not hasattr(session.config, "workerinput"):
+        merged = {**_durations(), **{k: round(v, 1) for k, v in _MEASURED.items()}}
+        _DURATIONS.write_text(json.dumps(dict(sorted(merged.items(), key=lambda kv: -kv[1])), indent=1) + "\n")
