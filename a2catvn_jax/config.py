@@ -383,13 +383,6 @@ def load_config(
     path: Optional[str | os.PathLike | Sequence[str | os.PathLike]] = None, overrides: Sequence[str] = (), *,
     schema: type = Config
 ) -> Any:
-    """Load a config: defaults <- YAML file(s) at `path` (each may be partial; None: none) <- overrides.
-
-    `path` is one file or a list of files; a later file's keys override an earlier
-    one's (sections merge key by key, a list is replaced whole). Overrides are
-    "dotted.key=value" strings; the value is parsed as YAML (numbers, `true`/`false`,
-    `null`, `[1, 2]` lists), except that string-typed keys take the raw text when it
-    does not parse to a string. The merged result is validated once. `schema` is the
-    root dataclass (default `Config`).
-    """
+    """`configio.load_config` with `Config` as the default root: defaults <- YAML file(s)
+    at `path` (later files override earlier ones) <- "dotted.key=value" overrides."""
     return configio.load_config(path, overrides, schema=schema)

@@ -482,6 +482,15 @@ def _merge(base: dict, update: Mapping) -> dict:
     return base
 
 
+def flat(data: Mapping, prefix: str = "") -> dict:
+    """A nested mapping (a config's `to_dict`) as {"dotted.key": value}."""
+    out = {}
+    for k, v in data.items():
+        key = f"{prefix}.{k}" if prefix else k
+        out.update(flat(v, key) if isinstance(v, Mapping) else {key: v})
+    return out
+
+
 def load_config(
     path: Optional[str | os.PathLike | Sequence[str | os.PathLike]] = None, overrides: Sequence[str] = (), *,
     schema: type

@@ -37,6 +37,7 @@ import orbax.checkpoint as ocp
 import yaml
 
 from a2catvn_jax.config import Config, ConfigError, from_dict, load_config, save_config, to_dict
+from a2catvn_jax.configio import flat
 from a2catvn_jax.errors import UserError
 
 CONFIG_FILE = "config.yaml"
@@ -66,17 +67,9 @@ class CheckpointError(UserError, RuntimeError):
     """A checkpoint that is missing, unreadable or written under another configuration."""
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        key = f"{prefix}.{k}" if prefix else k
-        out.update(_flat(v, key) if isinstance(v, dict) else {key: v})
-    return out
-
-
 def config_differences(a: Config, b: Config, ignore=BOOKKEEPING_KEYS) -> list[str]:
     """'key: a_value != b_value' for every key where the two configurations differ."""
-    fa, fb = _flat(to_dict(a)), _flat(to_dict(b))
+    fa, fb = flat(to_dict(a)), flat(to_dict(b))
     return [f"{k}: {fa[k]!r} != {fb[k]!r}" for k in fa if k not in ignore and fa[k] != fb[k]]
 
 

@@ -39,6 +39,7 @@ from typing import Mapping, Optional, Sequence
 
 from a2catvn_jax.agent.update import total_updates
 from a2catvn_jax.config import Config, load_config, save_config, to_dict
+from a2catvn_jax.configio import flat
 from a2catvn_jax.run.checkpoint import CONFIG_FILE, Checkpointer
 from a2catvn_jax.run.evaluation import to_json
 from a2catvn_jax.run.logger import read_jsonl
@@ -62,19 +63,11 @@ LEGACY_EVAL_SEED = 0  # what every evaluation stored without a seed in its name 
 # -- keys -------------------------------------------------------------------------------
 
 
-def _flat(data: Mapping, prefix: str = "") -> dict:
-    out = {}
-    for k, v in data.items():
-        key = f"{prefix}.{k}" if prefix else k
-        out.update(_flat(v, key) if isinstance(v, Mapping) else {key: v})
-    return out
-
-
 def non_defaults(values: Mapping, defaults: Mapping) -> dict:
     """dotted key -> value for every leaf of the nested `values` that differs from its
     value in the nested `defaults` (or that `defaults` lacks); lists are compared whole."""
-    flat_defaults = _flat(defaults)
-    return {k: v for k, v in _flat(values).items() if k not in flat_defaults or flat_defaults[k] != v}
+    flat_defaults = flat(defaults)
+    return {k: v for k, v in flat(values).items() if k not in flat_defaults or flat_defaults[k] != v}
 
 
 def _hash(text: str) -> str:
