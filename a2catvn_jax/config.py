@@ -67,6 +67,7 @@ __all__ = [
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # the YAML files of a source checkout
 MIN_IMAGE_SIZE = 16  # smallest env.render.image_size the network takes
 RP_FRAMES = 3  # consecutive frames seen by the reward-prediction head (agent.networks)
+BODY_MARGIN = 0.1  # metres: the agent's body reaches this far above its camera (env.world)
 
 
 # ----------------------------------------------------------------------- leaf types
@@ -185,9 +186,9 @@ class EnvConfig(Section):
     render: RenderConfig = field(default_factory=RenderConfig)
 
     def _cross_checks(self, k):
-        if self.scene.height <= self.camera_height + 0.1:
+        if self.scene.height <= self.camera_height + BODY_MARGIN:
             yield k("scene.height"), (f"ceiling height {self.scene.height} must exceed {k('camera_height')} "
-                                      f"({self.camera_height}) by more than 0.1 m")
+                                      f"({self.camera_height}) by more than {BODY_MARGIN} m")
         steepest = self.render.fovy / 2 + self.max_tilt_deg
         if steepest >= 85.0:
             yield k("max_tilt_deg"), (f"{k('render.fovy')} / 2 + {k('max_tilt_deg')} = {steepest:g} degrees "

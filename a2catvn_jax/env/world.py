@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 from flax import struct
 
-from a2catvn_jax.config import EnvConfig
+from a2catvn_jax.config import BODY_MARGIN, EnvConfig
 from a2catvn_jax.env import geometry as geometry_lib
 from a2catvn_jax.env import backends, goals as goals_lib, mjx_world, navgrid, raycast
 from a2catvn_jax.env.camera import CameraSpec, Frame
@@ -23,7 +23,6 @@ from a2catvn_jax.env.scenes import generate, mjcf
 from a2catvn_jax.env.scenes.errors import SceneError
 from a2catvn_jax.env.scenes.spec import CLASS_ID, NUM_CLASSES, Scene
 
-BODY_MARGIN = 0.1  # the agent's body reaches this far above its camera
 
 
 @struct.dataclass
