@@ -2,7 +2,7 @@
 
     python -m a2catvn_jax.evaluate --workdir DIR [--episodes 100] [--step N]
         [--houses train|held-out|new-targets] [--policy sample|greedy|random|oracle] [--video FILE.gif|.mp4]
-        [--video-episodes 2] [--out FILE.json] [--seed 0] [--baselines] [--set KEY=VALUE ...]
+        [--video-episodes 2] [--out FILE.json] [--seed 0] [--baselines] [--devices N] [--set KEY=VALUE ...]
     python -m a2catvn_jax.evaluate --config FILE --policy random|oracle [--episodes 100] [...]
 
 The parameters of a checkpoint of the run in DIR (the latest, or update N) are
@@ -59,6 +59,8 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--baselines", action="store_true",
                         help="also run the random policy and the shortest-path oracle in the same houses")
+    parser.add_argument("--devices", type=int, default=None, metavar="N",
+                        help="split the environments over the first N local devices (default: all of them)")
     cli.add_config_args(parser, help="evaluation settings, e.g. --set env.num_envs=32 env.max_episode_steps=500")
     args = parser.parse_args(argv)
     if (args.workdir is None) == (args.config is None):
@@ -67,6 +69,8 @@ def main(argv=None) -> None:
         parser.error(f"without a run, --policy must be a baseline: {' or '.join(BASELINES)}")
     if args.workdir is None and args.step is not None:
         parser.error("--step needs --workdir")
+    if args.devices is not None and args.devices < 1:
+        parser.error(f"--devices must be >= 1, got {args.devices}")
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if args.video_episodes < 1:
@@ -78,11 +82,11 @@ def main(argv=None) -> None:
         if args.workdir is None:
             result = evaluate_baseline(cli.config_from_args(args), args.episodes, houses=args.houses,
                                        policy=args.policy, seed=args.seed, video=args.video,
-                                       video_episodes=args.video_episodes)
+                                       video_episodes=args.video_episodes, devices=args.devices)
         else:
             result = evaluate(args.workdir, args.episodes, step=args.step, houses=args.houses, policy=args.policy,
                               seed=args.seed, overrides=cli.overrides_of(args), video=args.video,
-                              video_episodes=args.video_episodes, baselines=args.baselines)
+                              video_episodes=args.video_episodes, baselines=args.baselines, devices=args.devices)
     if args.out:
         out = Path(args.out)
     elif args.workdir is None:

@@ -173,3 +173,42 @@ def test_render_passes_follow_the_platform():
     assert cpu.chunk(4096) == 16 and CameraSpec(84, 84, chunk_frames=render_chunk("cpu")).chunk(4096) == 16
     assert CameraSpec(174, 174, chunk_frames=render_chunk("cpu")).chunk(4096) == 9
     assert gpu.chunk(4096) == 4096 and gpu.chunk(16) == 16
+
+
+TWO_DEVICE_EVALUATION = textwrap.dedent(
+    """
+    import os, sys
+    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    import jax
+    sys.path.insert(0, "tests")
+    from tiny import TINY_LEARNER
+    from a2catvn_jax.config import load_config
+    from a2catvn_jax.run.evaluation import evaluate, evaluate_baseline
+    from a2catvn_jax.run.training import train
+
+    tmp = sys.argv[1]
+    cfg = load_config(None, TINY_LEARNER + ["env.scene.kind=room", "env.scene.num_scenes=1", "env.max_episode_steps=10"])
+    train(cfg, tmp + "/run", max_updates=1, progress=False, log=lambda *_: None, devices=1)
+    quiet = lambda *_: None
+    for policy in ("sample", "greedy"):
+        split = evaluate(tmp + "/run", 8, policy=policy, log=quiet)
+        whole = evaluate(tmp + "/run", 8, policy=policy, log=quiet, devices=1)
+        assert split["per_episode"] == whole["per_episode"], (policy, split["per_episode"], whole["per_episode"])
+    split = evaluate_baseline(cfg, 8, policy="oracle", log=quiet)
+    assert split["per_episode"] == evaluate_baseline(cfg, 8, policy="oracle", log=quiet, devices=1)["per_episode"]
+    odd = load_config(None, TINY_LEARNER + ["env.scene.kind=room", "env.scene.num_scenes=1", "env.num_envs=3"])
+    try:
+        evaluate_baseline(odd, 3, policy="random", log=quiet)
+        raise AssertionError("3 environments over 2 devices")
+    except ValueError as e:
+        assert "env.num_envs=3 environments cannot be split evenly over 2 devices" in str(e), e
+    print("OK")
+    """
+)
+
+
+def test_evaluation_splits_the_environments_over_two_devices_with_the_same_episodes(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-c", TWO_DEVICE_EVALUATION, str(tmp_path)], cwd=root, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0 and proc.stdout.strip().endswith("OK"), proc.stderr[-3000:]

@@ -20,6 +20,7 @@ from typing import Callable, Optional, Sequence
 
 import jax
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from a2catvn_jax.agent.acting import act_as, initial_agent, observe
 from a2catvn_jax.agent.networks import Networks
@@ -101,6 +102,7 @@ def evaluate(
     video_episodes: int = 2,
     baselines: bool = False,
     log: Callable[[str], None] = print,
+    devices: Optional[int] = None,
 ) -> dict:
     """Evaluate checkpoint `step` (default: the latest) of the run in `workdir`.
 
@@ -122,19 +124,19 @@ def evaluate(
     env = make_env(run.cfg.env, houses)
     log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
     restored = run.restore(log)
-    result = run_episodes(restored, env, houses, episodes, policy=policy, seed=seed, video=video,
+    result = run_episodes(restored, env, houses, episodes, policy=policy, seed=seed, video=video, devices=devices,
                           video_episodes=video_episodes, log=log)
     if baselines:
         result["baselines"] = {}
         for p in BASELINES:
-            r = run_episodes(None, env, houses, episodes, policy=p, seed=seed, log=log)
+            r = run_episodes(None, env, houses, episodes, policy=p, seed=seed, log=log, devices=devices)
             result["baselines"][p] = {k: r[k] for k in ("success_rate", "spl", "episode_length")}
     return result
 
 
 def evaluate_sets(workdir, episodes: int = 100, *, houses: Sequence[str] = HOUSES, step: Optional[int] = None,
                   policies: Sequence[str] = ("sample",), seed: int = 0, overrides: Sequence[str] = (),
-                  log: Callable[[str], None] = print) -> dict:
+                  log: Callable[[str], None] = print, devices: Optional[int] = None) -> dict:
     """`evaluate` of one checkpoint in several house sets with several policies, restoring
     it once and compiling once for all sets of one shape: {(houses, policy): result}."""
     for p in policies:
@@ -142,13 +144,13 @@ def evaluate_sets(workdir, episodes: int = 100, *, houses: Sequence[str] = HOUSE
     run = locate(workdir, step, overrides)
     envs = make_envs(run.cfg.env, houses)
     restored = run.restore(log)
-    return {(h, p): run_episodes(restored, envs[h], h, episodes, policy=p, seed=seed, log=log)
+    return {(h, p): run_episodes(restored, envs[h], h, episodes, policy=p, seed=seed, log=log, devices=devices)
             for h in houses for p in policies}
 
 
 def evaluate_baseline(cfg: Config, episodes: int = 100, *, houses: str = "train", policy: str = "random",
                       seed: int = 0, video=None, video_episodes: int = 2,
-                      log: Callable[[str], None] = print) -> dict:
+                      log: Callable[[str], None] = print, devices: Optional[int] = None) -> dict:
     """A baseline policy ("random" or "oracle") in the houses of configuration `cfg`, no run
     needed: the result of `evaluate` with step and frames 0 and workdir None."""
     if policy not in BASELINES:
@@ -157,14 +159,34 @@ def evaluate_baseline(cfg: Config, episodes: int = 100, *, houses: str = "train"
     t0 = time.perf_counter()
     env = make_env(cfg.env, houses)
     log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
-    return run_episodes(None, env, houses, episodes, policy=policy, seed=seed, video=video,
+    return run_episodes(None, env, houses, episodes, policy=policy, seed=seed, video=video, devices=devices,
                         video_episodes=video_episodes, log=log)
 
 
+def split_over_devices(per_env, shared, batch: int, devices: Optional[int] = None):
+    """(`per_env` split along its leading environment axis of `batch`, `shared`
+    replicated) over the first `devices` local devices (default: all); unchanged on
+    one device. A batch that does not split evenly is a `ValueError` naming both numbers."""
+    local = jax.local_devices()
+    n = len(local) if devices is None else int(devices)
+    if not 1 <= n <= len(local):
+        raise ValueError(f"--devices {n}: this machine has {len(local)} {local[0].platform} device(s)")
+    if n == 1:
+        return per_env, shared
+    if batch % n:
+        raise ValueError(f"env.num_envs={batch} environments cannot be split evenly over {n} devices: "
+                         f"make it a multiple of {n} or pass --devices")
+    mesh = Mesh(np.array(local[:n]), ("batch",))
+    put = lambda tree, spec: jax.device_put(  # noqa: E731
+        tree, jax.tree_util.tree_map(lambda _: NamedSharding(mesh, spec), tree))
+    return put(per_env, PartitionSpec("batch")), put(shared, PartitionSpec())
+
+
 def run_episodes(restored: Optional[Restored], env: NavEnv, houses: str, episodes: int, *, policy: str = "sample",
-                 seed: int = 0, video=None, video_episodes: int = 2, log: Callable[[str], None] = print) -> dict:
+                 seed: int = 0, video=None, video_episodes: int = 2, log: Callable[[str], None] = print,
+                 devices: Optional[int] = None) -> dict:
     """Episodes of the restored agent (None: a baseline policy, no network) in `env` (see
-    `evaluate`)."""
+    `evaluate`), the environments split over `devices` local devices (default: all)."""
     _check(episodes, policy, video, video_episodes)
     if restored is None and policy not in BASELINES:
         raise ValueError(f"policy {policy!r} needs a trained run; without one use one of {BASELINES}")
@@ -184,6 +206,8 @@ def run_episodes(restored: Optional[Restored], env: NavEnv, houses: str, episode
         agent = initial_agent(networks, B)
         target_stream = COMPILED.get(("targets", networks), lambda: jax.jit(networks.target_stream))
         target_feats = target_stream(params, env.target_images(world)["rgb"])
+    (env_state, agent), (params, world, target_feats) = split_over_devices(
+        (env_state, agent), (params, world, target_feats), B, devices)
 
     found: list[list[dict]] = [[] for _ in range(B)]
     video_steps: list[dict] = []
