@@ -23,11 +23,10 @@ import pytest
 from a2catvn_jax.run.checkpoint import Checkpointer, read_run_config
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.training import train
-from tiny import TINY_LEARNER
+from tiny import TINY_ROOM
 
 ROOT = Path(__file__).resolve().parents[1]
-OVERRIDES = TINY_LEARNER + ["env.scene.kind=room", "env.scene.num_scenes=1", "env.max_episode_steps=10",
-                            "train.log_every=1", "train.checkpoint_every=100000"]
+OVERRIDES = TINY_ROOM + ["train.log_every=1", "train.checkpoint_every=100000"]
 
 
 def _port() -> int:

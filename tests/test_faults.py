@@ -32,15 +32,9 @@ from a2catvn_jax.run import memory, training, workdir as wd
 from a2catvn_jax.run.checkpoint import Checkpointer
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.train import main
-from tiny import TINY_LEARNER
+from tiny import TINY_RUN
 
-TINY = TINY_LEARNER + [
-    "env.scene.kind=room",
-    "env.scene.num_scenes=1",
-    "env.max_episode_steps=10",
-    "train.log_every=1",
-    "train.checkpoint_every=2",
-]
+TINY = TINY_RUN
 N = 3
 ROOT = Path(__file__).resolve().parents[1]
 

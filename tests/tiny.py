@@ -13,3 +13,8 @@ TINY_LEARNER = [
     "agent.dense_size=16",
     "agent.core_size=16",
 ]
+
+# A run of the tiny learner in one small room with 10-step episodes (the training tests').
+TINY_ROOM = TINY_LEARNER + ["env.scene.kind=room", "env.scene.num_scenes=1", "env.max_episode_steps=10"]
+# ... logged every update and checkpointed every second one.
+TINY_RUN = TINY_ROOM + ["train.log_every=1", "train.checkpoint_every=2"]

@@ -28,6 +28,7 @@ from a2catvn_jax.config import Config
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.env.oracle import oracle_actions
 from a2catvn_jax.memo import Memo
+from a2catvn_jax.run import distributed
 from a2catvn_jax.run.restore import HOUSES, Restored, check_houses, locate, make_env, make_envs
 from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
 
@@ -166,17 +167,12 @@ def evaluate_baseline(cfg: Config, episodes: int = 100, *, houses: str = "train"
 def split_over_devices(per_env, shared, batch: int, devices: Optional[int] = None):
     """(`per_env` split along its leading environment axis of `batch`, `shared`
     replicated) over the first `devices` local devices (default: all); unchanged on
-    one device. A batch that does not split evenly is a `ValueError` naming both numbers."""
-    local = jax.local_devices()
-    n = len(local) if devices is None else int(devices)
-    if not 1 <= n <= len(local):
-        raise ValueError(f"--devices {n}: this machine has {len(local)} {local[0].platform} device(s)")
-    if n == 1:
+    one device. A batch that does not split evenly is a `distributed.DevicesError` (a
+    `ValueError`) naming both numbers."""
+    used = distributed.devices_for(batch, devices)
+    if len(used) == 1:
         return per_env, shared
-    if batch % n:
-        raise ValueError(f"env.num_envs={batch} environments cannot be split evenly over {n} devices: "
-                         f"make it a multiple of {n} or pass --devices")
-    mesh = Mesh(np.array(local[:n]), ("batch",))
+    mesh = Mesh(np.array(used), ("batch",))
     put = lambda tree, spec: jax.device_put(  # noqa: E731
         tree, jax.tree_util.tree_map(lambda _: NamedSharding(mesh, spec), tree))
     return put(per_env, PartitionSpec("batch")), put(shared, PartitionSpec())

@@ -74,29 +74,6 @@ def _build(cfg):
     return env, networks, make_update(env, networks, cfg), grad_norms
 
 
-def devices_for(cfg, devices=None) -> list:
-    """The devices a run of `cfg` uses: all local ones, or the first `devices`; with
-    several processes (`run.distributed`) every device of every process. The environments
-    must split evenly over them."""
-    if jax.process_count() > 1:
-        if devices is not None:
-            raise TrainingError(f"--devices {devices}: a run of several processes uses every device of each")
-        every = jax.devices()
-        if cfg.env.num_envs % len(every):
-            raise TrainingError(f"env.num_envs={cfg.env.num_envs} environments cannot be split evenly over the "
-                                f"{len(every)} devices of {jax.process_count()} processes: make it a multiple of "
-                                f"{len(every)}")
-        return every
-    local = jax.local_devices()
-    n = len(local) if devices is None else int(devices)
-    if not 1 <= n <= len(local):
-        raise TrainingError(f"--devices {n}: this machine has {len(local)} {local[0].platform} device(s)")
-    if cfg.env.num_envs % n:
-        raise TrainingError(f"env.num_envs={cfg.env.num_envs} environments cannot be split evenly over {n} devices: "
-                            f"make it a multiple of {n} or pass --devices")
-    return local[:n]
-
-
 def updates_per_call(cfg, platform: Optional[str] = None) -> int:
     """Updates one call runs at most: `train.updates_per_call`, or by default 1 on the CPU
     (a device loop around the update runs at half the speed there: docs/benchmarks.md,
@@ -130,7 +107,7 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     log = (log or functools.partial(print, flush=True)) if main else (lambda *_: None)
     progress = progress and main
     workdir = Path(workdir)
-    used = devices_for(cfg, devices)
+    used = distributed.devices_for(cfg.env.num_envs, devices)
     if init_from is not None and jax.process_count() > 1:
         raise TrainingError("--init-from is not supported in a run of several processes: start it in one process, "
                             "stop it after its first checkpoint, and --resume it with all of them")
