@@ -5,6 +5,7 @@
         [--renderers raycast mjx warp] [--cores 1]
     python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
         [--processes 1 2 | --batch-sizes 16 256 1024 4096]
+    python -m a2catvn_jax.benchmark compile [--configs quickstart] [--batch-sizes 16 256 1024 4096]
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
         [--networks default configs/presets/authors_network.yaml] [--conv-impls xla auto matmul | --layers]
     python -m a2catvn_jax.benchmark profile [--configs quickstart image_goals_cpu paper] [--updates 5]
@@ -48,6 +49,11 @@ With `--layers`, instead, the image stream's conv1 and conv2 alone, forward+back
 on `--frames` images, by XLA's convolution, by matrix products and in PyTorch, timed
 in turns: where the network's time against PyTorch's goes.
 
+`compile`: what compiling the training update costs at each of `--batch-sizes`
+(default 16 256 1024 4096) for each of `--configs`, on the abstract training state
+(nothing allocated, nothing run): building the environment and the update, tracing and
+lowering, XLA's compile, the compiled program's size and XLA's buffers for one update.
+
 `loop`: training frames/s as the host drives the update, timed in turns in one process:
 one update per call with its metrics read back before the next, against `--per-call K`
 updates per call of the device loop (`train.updates_per_call`), `--updates` updates per
@@ -81,6 +87,7 @@ from a2catvn_jax import cli
 from a2catvn_jax.bench import render_speed
 from a2catvn_jax.bench.profile import matmul_gflops, profile_update
 from a2catvn_jax.bench.throughput import (
+    bench_compile,
     bench_conv_impls,
     bench_env,
     bench_loop,
@@ -103,10 +110,10 @@ def _header():
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(prog="python -m a2catvn_jax.benchmark", description=__doc__.split("\n\n")[0])
-    parser.add_argument("what", choices=["env", "render", "train", "loop", "network", "profile"], help="what to benchmark")
+    parser.add_argument("what", choices=["env", "render", "train", "compile", "loop", "network", "profile"], help="what to benchmark")
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=None, metavar="B",
                         help="env (default: 16 64 256 1024); render (default: 64); "
-                             "train: one process per size, with its peak memory")
+                             "train: one process per size, with its peak memory; compile (default: 16 256 1024 4096)")
     parser.add_argument("--resolutions", type=int, nargs="+", default=[64, 84, 174], help="env, render")
     parser.add_argument("--renderers", nargs="+", choices=list(render_speed.RENDERERS), default=list(render_speed.RENDERERS),
                         help="render: raycast (ours), mjx (mjx.render inside jit), warp (MuJoCo Warp called directly)")
@@ -168,6 +175,17 @@ def main(argv=None) -> None:
                 rows.append(r)
                 print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
                       f"{r['env_fps']:9.0f} {r['env_share']:10.0%}", flush=True)
+        elif args.what == "compile":
+            rows = []
+            print(f"{'config':>10} {'batch':>6} {'res':>5} {'build s':>8} {'trace s':>8} {'compile s':>10} "
+                  f"{'HLO ops':>8} {'update GiB':>11}")
+            for name in args.configs:
+                extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
+                for batch in args.batch_sizes or (16, 256, 1024, 4096):
+                    r = bench_compile(name, [*extra, *overrides, f"env.num_envs={batch}"])
+                    rows.append(r)
+                    print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['build_s']:8.1f} {r['trace_s']:8.1f} "
+                          f"{r['compile_s']:10.1f} {r['hlo_ops']:8d} {r['update_gib']:11.2f}", flush=True)
         elif args.what == "loop":
             rows = []
             for name in args.configs:
@@ -251,16 +269,17 @@ def _train_batch_table(args, overrides) -> list:
     """`train` at each batch size of `--batch-sizes`, one process each (one at a time, on
     every core), so that each size's peak memory is its own."""
     rows = []
-    print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'compile s':>10} {'state GiB':>10} "
-          f"{'update GiB':>11} {'peak GiB':>9}")
+    print(f"{'config':>10} {'batch':>6} {'res':>5} {'train fps':>10} {'init s':>7} {'compile s':>10} {'first s':>8} "
+          f"{'state GiB':>10} {'update GiB':>11} {'peak GiB':>9}")
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.configs:
             for batch in args.batch_sizes:
                 (r,) = _train_children(args, name, overrides, [[f"env.num_envs={batch}"]], 1, tmp, f"b{batch}")
                 rows.append(r)
                 update = "-" if r["update_gib"] is None else f"{r['update_gib']:.2f}"
-                print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['compile_s']:10.1f} "
-                      f"{r['state_gib']:10.2f} {update:>11} {r['peak_rss_gib']:9.2f}", flush=True)
+                print(f"{name:>10} {r['batch']:>6} {r['resolution']:>5} {r['train_fps']:10.0f} {r['init_s']:7.1f} "
+                      f"{r['compile_s']:10.1f} {r['first_s']:8.1f} {r['state_gib']:10.2f} {update:>11} "
+                      f"{r['peak_rss_gib']:9.2f}", flush=True)
     return rows
 
 

@@ -76,19 +76,23 @@ def _gib(n_bytes) -> float:
 
 
 def _timed_updates(cfg, env, updates: int):
-    """(compile seconds, frames/s, memory, the environments' state after the last update)
-    of the training update. Memory in GiB:
+    """(seconds, frames/s, memory, the environments' state after the last update) of the
+    training update. Seconds: `init_s` (compiling and running `init`: parameters, the
+    environments' reset, the replay), `compile_s` (lowering and compiling the update, XLA
+    only) and `first_s` (its first call, which runs one update). Memory in GiB:
     `state` (the training state: parameters, optimiser, environments, replay), `update`
     (XLA's buffers for one update beyond its donated argument, from the compiled
     program), and the process's peak resident memory so far."""
     init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
     t0 = time.perf_counter()
     state = jax.block_until_ready(init(jax.random.PRNGKey(0)))
+    t1 = time.perf_counter()
     compiled = update.lower(state).compile()
+    t2 = time.perf_counter()
     stats = compiled.memory_analysis()
     state, m = compiled(state)
     jax.block_until_ready(m)
-    compile_s = time.perf_counter() - t0
+    seconds = {"init_s": t1 - t0, "compile_s": t2 - t1, "first_s": time.perf_counter() - t2}
     t0 = time.perf_counter()
     for _ in range(updates):
         state, m = compiled(state)
@@ -98,7 +102,7 @@ def _timed_updates(cfg, env, updates: int):
               "update_gib": None if stats is None else _gib(stats.temp_size_in_bytes + stats.output_size_in_bytes
                                                             - stats.alias_size_in_bytes),
               "peak_rss_gib": _gib(peak_rss_bytes())}
-    return compile_s, fps, memory, state.env_state
+    return seconds, fps, memory, state.env_state
 
 
 def peak_rss_bytes() -> int:
@@ -140,10 +144,35 @@ def _env_rollout_fps(env, state, steps: int, repeats: int) -> float:
 def bench_train(name: str, overrides, updates: int) -> dict:
     cfg = load_config(CONFIGS / f"{name}.yaml", overrides)
     env = NavEnv(cfg.env)
-    compile_s, fps, memory, env_state = _timed_updates(cfg, env, updates)
+    seconds, fps, memory, env_state = _timed_updates(cfg, env, updates)
     env_fps = _env_rollout_fps(env, env_state, cfg.train.rollout_length, max(2, updates))
     return {"config": name, "batch": env.num_envs, "resolution": cfg.env.render.image_size, "train_fps": fps,
-            "compile_s": compile_s, "env_fps": env_fps, "env_share": fps / env_fps, **memory}
+            **seconds, "env_fps": env_fps, "env_share": fps / env_fps, **memory}
+
+
+def bench_compile(name: str, overrides) -> dict:
+    """What compiling the training update of `configs/NAME.yaml` (with `overrides`) costs,
+    without allocating the training state: `build_s` (the environment and the update's
+    Python objects), `trace_s` (tracing and lowering on the abstract state,
+    `jax.eval_shape(init)`), `compile_s` (XLA's compile of the lowered program), the
+    size of the program XLA compiled (`hlo_ops`, instructions of the optimised module)
+    and XLA's buffers for one update beyond its donated argument (`update_gib`)."""
+    cfg = load_config(CONFIGS / f"{name}.yaml", overrides)
+    t0 = time.perf_counter()
+    env = NavEnv(cfg.env)
+    init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
+    t1 = time.perf_counter()
+    lowered = update.lower(jax.eval_shape(init, jax.random.PRNGKey(0)))
+    t2 = time.perf_counter()
+    compiled = lowered.compile()
+    t3 = time.perf_counter()
+    stats = compiled.memory_analysis()
+    text = compiled.as_text() or ""
+    return {"config": name, "batch": env.num_envs, "resolution": cfg.env.render.image_size,
+            "build_s": t1 - t0, "trace_s": t2 - t1, "compile_s": t3 - t2,
+            "hlo_ops": sum(1 for line in text.splitlines() if " = " in line),
+            "update_gib": None if stats is None else _gib(stats.temp_size_in_bytes + stats.output_size_in_bytes
+                                                          - stats.alias_size_in_bytes)}
 
 
 def _network_pass(resolution: int, frames: int, overrides=(), config=None):
