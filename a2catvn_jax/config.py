@@ -164,6 +164,7 @@ class RenderConfig(Section):
 class EnvConfig(Section):
     """The batched navigation environment: agents, goals, episodes, noise, curriculum."""
 
+    kind: Literal["mujoco", "synthetic"] = "mujoco"  # the MuJoCo world of houses, or a rendering-free test bench (env/synthetic.py)
     num_envs: Count = 16  # B
     new_scene_per_episode: Bool = False  # each episode in a scene drawn uniformly (else agent b stays in scene b mod S)
     action_set: Literal["full", "no_tilt", "grid"] = "full"

@@ -23,10 +23,10 @@ import pytest
 from a2catvn_jax.run.checkpoint import Checkpointer, read_run_config
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.training import train
-from tiny import TINY_ROOM
+from tiny import TINY_SYNTHETIC
 
 ROOT = Path(__file__).resolve().parents[1]
-OVERRIDES = TINY_ROOM + ["train.log_every=1", "train.checkpoint_every=100000"]
+OVERRIDES = TINY_SYNTHETIC + ["train.log_every=1", "train.checkpoint_every=100000"]
 
 
 def _port() -> int:
@@ -78,10 +78,10 @@ def _saved_params(workdir: Path, updates: int):
     """The parameters of the run's checkpoint at `updates`, read in this process."""
     from a2catvn_jax.agent.networks import make_networks
     from a2catvn_jax.agent.update import make_update
-    from a2catvn_jax.env import NavEnv
+    from a2catvn_jax.env import make_env
 
     cfg = read_run_config(workdir)
-    env = NavEnv(cfg.env)
+    env = make_env(cfg.env)
     init, _ = make_update(env, make_networks(cfg, env.num_actions), cfg)
     ckpt = Checkpointer(workdir, create=False)
     try:

@@ -18,7 +18,7 @@ import pytest
 
 from a2catvn_jax.config import load_config
 from a2catvn_jax.env import Info, NavEnv, Observation
-from a2catvn_jax.run.restore import make_env, make_envs
+from a2catvn_jax.run.restore import house_env, make_envs
 
 CFG = [
     "env.num_envs=6",
@@ -65,7 +65,7 @@ def test_one_compile_serves_worlds_of_one_shape(envs, stepped):
                (("train", train), ("held-out", held_out), ("new-targets", new_targets))}
     assert stepped._cache_size() == 1
     # Each world's result is the one its own environment gives with its own (unpadded) world.
-    own = make_env(cfg, "held-out")
+    own = house_env(cfg, "held-out")
     assert not all(a.shape == b.shape for a, b in zip(jax.tree_util.tree_leaves(own.world.arrays),
                                                       jax.tree_util.tree_leaves(held_out.world.arrays)))
     state = stepped(own.world.arrays, key)  # compiled again, for the unpadded shapes
@@ -80,7 +80,7 @@ def test_one_compile_serves_worlds_of_one_shape(envs, stepped):
 def test_padding_changes_nothing(envs, stepped):
     """The training world padded to the common shapes steps exactly as the unpadded one."""
     cfg, train, _, _ = envs
-    own = make_env(cfg, "train")
+    own = house_env(cfg, "train")
     padded, plain = train.world.arrays, own.world.arrays
     assert plain.fits(padded) and not padded.fits(plain)  # padded along some axis
     key = jax.random.PRNGKey(3)

@@ -22,7 +22,7 @@ from a2catvn_jax.env.scenes import mjcf
 from a2catvn_jax.env.world import make_scenes
 from a2catvn_jax.evaluate import main
 from a2catvn_jax.run.evaluation import default_output, evaluate
-from a2catvn_jax.run.restore import HELD_OUT_OFFSET, make_env
+from a2catvn_jax.run.restore import HELD_OUT_OFFSET, house_env
 from a2catvn_jax.run.training import train
 from a2catvn_jax.run.video import write_video
 from tiny import TINY_LEARNER
@@ -116,7 +116,7 @@ def test_held_out_houses(run, cli_result):
 
 def test_new_targets_keep_the_houses_and_change_the_goals(run, cli_result):
     cfg = load_config(None, TINY)
-    train_env, new_env = make_env(cfg.env, "train"), make_env(cfg.env, "new-targets")
+    train_env, new_env = house_env(cfg.env, "train"), house_env(cfg.env, "new-targets")
     assert [s.name for s in new_env.world.scenes] == [s.name for s in train_env.world.scenes]
     assert not np.allclose(np.asarray(new_env.world.arrays.target_pose), np.asarray(train_env.world.arrays.target_pose))
 

@@ -16,15 +16,12 @@ import pytest
 from a2catvn_jax.agent import update as update_lib
 from a2catvn_jax.agent.networks import make_networks
 from a2catvn_jax.config import load_config
-from a2catvn_jax.env import NavEnv
+from a2catvn_jax.env import make_env
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.training import train
-from tiny import TINY_LEARNER
+from tiny import TINY_SYNTHETIC
 
-TINY = TINY_LEARNER + [
-    "env.scene.kind=room",
-    "env.scene.num_scenes=1",
-    "env.max_episode_steps=10",
+TINY = TINY_SYNTHETIC + [
     "train.replay_size=16",  # 4 rollouts of 4 steps
     "train.log_every=1",
     "train.checkpoint_every=2",
@@ -52,7 +49,7 @@ def _equal_in_float32(a, b):
 @pytest.fixture(scope="module")
 def built():
     cfg = load_config(None, TINY + WARM)
-    env = NavEnv(cfg.env)
+    env = make_env(cfg.env)
     return env, make_networks(cfg, env.num_actions)
 
 

@@ -21,7 +21,7 @@ from a2catvn_jax.config import load_config
 from a2catvn_jax.run.distributed import DevicesError, devices_for
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.training import next_stop, train, updates_per_call
-from tiny import TINY_ROOM
+from tiny import TINY_SYNTHETIC
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
@@ -31,14 +31,14 @@ def _leaves(state):
 
 
 def test_calls_stop_at_log_checkpoint_and_call_boundaries():
-    cfg = load_config(None, TINY_ROOM + ["train.log_every=4", "train.checkpoint_every=6", "train.updates_per_call=3"])
+    cfg = load_config(None, TINY_SYNTHETIC + ["train.log_every=4", "train.checkpoint_every=6", "train.updates_per_call=3"])
     assert updates_per_call(cfg, "cpu") == updates_per_call(cfg, "gpu") == 3
     stops, update = [], 0
     while update < 13:
         update = next_stop(update, 13, cfg, 3)
         stops.append(update)
     assert stops == [3, 4, 6, 8, 9, 12, 13]
-    default = load_config(None, TINY_ROOM + ["train.log_every=5", "train.checkpoint_every=500"])
+    default = load_config(None, TINY_SYNTHETIC + ["train.log_every=5", "train.checkpoint_every=500"])
     assert updates_per_call(default, "cpu") == 1 and updates_per_call(default, "gpu") == 5
     assert next_stop(0, 100, default, 5) == 5 and next_stop(7, 100, default, 5) == 10
     assert next_stop(7, 100, default, 1) == 8
@@ -49,9 +49,9 @@ def test_many_updates_per_call_match_one_per_call_and_resume_exactly(tmp_path):
     stop and a resume between them, against six calls of one: the same parameters and the
     same logged losses, to float rounding; the per-call run's log rows are the means of
     the one-per-call run's."""
-    one = load_config(None, TINY_ROOM + ["train.log_every=1", "train.checkpoint_every=3", "train.updates_per_call=1"])
+    one = load_config(None, TINY_SYNTHETIC + ["train.log_every=1", "train.checkpoint_every=3", "train.updates_per_call=1"])
     _, single, _ = train(one, tmp_path / "one", max_updates=6, **QUIET)
-    three = load_config(None, TINY_ROOM + ["train.log_every=3", "train.checkpoint_every=3", "train.updates_per_call=3"])
+    three = load_config(None, TINY_SYNTHETIC + ["train.log_every=3", "train.checkpoint_every=3", "train.updates_per_call=3"])
     train(three, tmp_path / "three", max_updates=3, **QUIET)
     _, looped, _ = train(three, tmp_path / "three", resume=True, max_updates=3, **QUIET)
     assert int(looped.update) == 6
@@ -81,14 +81,14 @@ TWO_DEVICES = textwrap.dedent(
     os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
     import jax, numpy as np
     sys.path.insert(0, "tests")
-    from tiny import TINY_LEARNER, TINY_ROOM
+    from tiny import TINY_SYNTHETIC
     from a2catvn_jax.config import load_config
     from a2catvn_jax.run.training import train
     from a2catvn_jax.train import main
 
     assert len(jax.local_devices()) == 2
     tmp = sys.argv[1]
-    cfg = load_config(None, TINY_ROOM + ["train.log_every=2"])
+    cfg = load_config(None, TINY_SYNTHETIC + ["train.log_every=2"])
     lines = []
     _, split, _ = train(cfg, tmp + "/split", max_updates=4, progress=False, log=lines.append)
     assert any("4 environments on 2 cpu devices" in line for line in lines), lines
@@ -105,7 +105,7 @@ TWO_DEVICES = textwrap.dedent(
     _, resumed, _ = train(cfg, tmp + "/split", resume=True, max_updates=2, progress=False, log=lambda *_: None)
     assert int(resumed.update) == 6 and len(resumed.env_state.obs.rgb.addressable_shards) == 2
     try:
-        main(["--set", *TINY_LEARNER, "env.num_envs=3", "--workdir", tmp + "/odd", "--updates", "1", "--no-progress"])
+        main(["--set", *TINY_SYNTHETIC, "env.num_envs=3", "--workdir", tmp + "/odd", "--updates", "1", "--no-progress"])
         raise AssertionError("3 environments over 2 devices")
     except SystemExit as e:
         assert e.code == 1
@@ -142,10 +142,10 @@ def test_each_optimizer_takes_its_own_first_step(optimizer):
     learning rate is scaled with the batch (4 environments, linear: a quarter)."""
     from a2catvn_jax.agent.networks import make_networks
     from a2catvn_jax.agent.update import make_update
-    from a2catvn_jax.env import NavEnv
+    from a2catvn_jax.env import make_env
 
-    cfg = load_config(None, TINY_ROOM + [f"train.optimizer={optimizer}", "train.lr_scaling=linear"])
-    env = NavEnv(cfg.env)
+    cfg = load_config(None, TINY_SYNTHETIC + [f"train.optimizer={optimizer}", "train.lr_scaling=linear"])
+    env = make_env(cfg.env)
     init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
     state = init(jax.random.PRNGKey(0))
     before = jax.device_get(state.params)

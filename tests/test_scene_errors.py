@@ -156,12 +156,12 @@ def test_model_settings_mjx_refuses_are_one_line(scene_dir):
 
 
 def test_evaluation_environment_raises_scene_error(scene_dir):
-    from a2catvn_jax.run.restore import make_env
+    from a2catvn_jax.run.restore import house_env
 
     cfg = load_config(None, _scene_overrides(scene_dir / "cylinder.xml")).env
     for houses in ("train", "new-targets"):
         with pytest.raises(SceneError, match=CASES["cylinder"][1]):
-            make_env(cfg, houses)
+            house_env(cfg, houses)
 
 
 def _evaluate_workdir(folder: Path, path: Path) -> Path:

@@ -19,13 +19,13 @@ SCRIPT = textwrap.dedent(
     from a2catvn_jax.config import load_config
     from a2catvn_jax.agent.networks import make_networks
     from a2catvn_jax.agent.update import make_update, shard
-    from a2catvn_jax.env import NavEnv
+    from a2catvn_jax.env import make_env
 
-    OVERRIDES = ["env.num_envs=4", "env.render.image_size=16", "env.render.culling=false", "env.scene.num_scenes=1",
+    OVERRIDES = ["env.kind=synthetic", "env.num_envs=4", "env.render.image_size=16", "env.scene.num_scenes=1",
         "env.scene.grid=[1,1]", "env.goals_per_scene=2", "train.rollout_length=4", "train.replay_size=8",
         "train.replay_batch=2", "agent.conv_channels=[4,8,8,8]", "agent.dense_size=16", "agent.core_size=16"]
     cfg = load_config(None, OVERRIDES)
-    env = NavEnv(cfg.env)
+    env = make_env(cfg.env)
     init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
     assert len(jax.devices()) == 2
     ts = init(jax.random.PRNGKey(0))

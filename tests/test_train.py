@@ -18,7 +18,7 @@ import pytest
 from a2catvn_jax.agent.networks import make_networks
 from a2catvn_jax.agent.update import make_update
 from a2catvn_jax.config import load_config
-from a2catvn_jax.env import NavEnv
+from a2catvn_jax.env import make_env
 from a2catvn_jax.run import inspection
 from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError
 from a2catvn_jax.run.logger import read_jsonl
@@ -145,7 +145,7 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(tmp_path):
     with pytest.raises(TrainingError, match="non-finite"):
         train(cfg, tmp_path, max_updates=20, progress=False, log=lambda *_: None)
     ckpt = Checkpointer(tmp_path, create=False)
-    env = NavEnv(cfg.env)
+    env = make_env(cfg.env)
     net = make_networks(cfg, env.num_actions)
     state, meta = ckpt.restore(jax.eval_shape(make_update(env, net, cfg).init, jax.random.PRNGKey(0)), cfg)
     assert all(np.all(np.isfinite(x)) for x in _leaves(state.params))

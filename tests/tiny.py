@@ -14,7 +14,12 @@ TINY_LEARNER = [
     "agent.core_size=16",
 ]
 
-# A run of the tiny learner in one small room with 10-step episodes (the training tests').
+# A run of the tiny learner in one small room with 10-step episodes (tests of what the
+# MuJoCo environment does: evaluation, the oracle, held-out houses).
 TINY_ROOM = TINY_LEARNER + ["env.scene.kind=room", "env.scene.num_scenes=1", "env.max_episode_steps=10"]
+# The tiny learner in the synthetic environment (env/synthetic.py), 10-step episodes: the
+# tests of the agent, the update, checkpoints and scaling, where the environment is not
+# what is tested (it compiles in a fraction of the time).
+TINY_SYNTHETIC = TINY_LEARNER + ["env.kind=synthetic", "env.scene.num_scenes=1", "env.max_episode_steps=10"]
 # ... logged every update and checkpointed every second one.
-TINY_RUN = TINY_ROOM + ["train.log_every=1", "train.checkpoint_every=2"]
+TINY_RUN = TINY_SYNTHETIC + ["train.log_every=1", "train.checkpoint_every=2"]

@@ -185,6 +185,20 @@ class NavEnv:
         return len(self.world.scenes)
 
     @property
+    def renderer(self) -> str:
+        """The render backend the world uses (`env.render.backend`, resolved)."""
+        return self.world.backend
+
+    def render_notes(self, per_device: int, platform: str) -> list[str]:
+        """Lines for a run's log: why the backend was chosen, and for the ray caster the
+        frames it renders per pass of `per_device` (the default on `platform`)."""
+        notes = [self.world.backend_note] if self.world.backend_note else []
+        if self.world.backend == "raycast":
+            notes.append(f"the ray caster renders {self.world.spec.chunk(per_device)} of each device's {per_device} "
+                         f"frames per pass (the default on {platform})")
+        return notes
+
+    @property
     def moves(self):
         """[A, 4] float32 per action: forward and left (metres), rotation and tilt (radians)."""
         return self._moves

@@ -29,7 +29,7 @@ from a2catvn_jax.env import NavEnv
 from a2catvn_jax.env.oracle import oracle_actions
 from a2catvn_jax.memo import Memo
 from a2catvn_jax.run import distributed
-from a2catvn_jax.run.restore import HOUSES, Restored, check_houses, locate, make_env, make_envs
+from a2catvn_jax.run.restore import HOUSES, Restored, check_houses, house_env, locate, make_envs
 from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
 
 MAX_CHUNK = 128  # environment steps per compiled call
@@ -122,7 +122,7 @@ def evaluate(
     check_houses(houses)
     run = locate(workdir, step, overrides)
     t0 = time.perf_counter()
-    env = make_env(run.cfg.env, houses)
+    env = house_env(run.cfg.env, houses)
     log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
     restored = run.restore(log)
     result = run_episodes(restored, env, houses, episodes, policy=policy, seed=seed, video=video, devices=devices,
@@ -158,7 +158,7 @@ def evaluate_baseline(cfg: Config, episodes: int = 100, *, houses: str = "train"
         raise ValueError(f"a baseline policy is one of {BASELINES}, got {policy!r}")
     check_houses(houses)
     t0 = time.perf_counter()
-    env = make_env(cfg.env, houses)
+    env = house_env(cfg.env, houses)
     log(f"built {env.num_scenes} {houses} scene(s) in {time.perf_counter() - t0:.1f} s")
     return run_episodes(None, env, houses, episodes, policy=policy, seed=seed, video=video, devices=devices,
                         video_episodes=video_episodes, log=log)

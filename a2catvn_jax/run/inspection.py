@@ -26,10 +26,10 @@ from a2catvn_jax.agent.acting import ACTION_RULES, act_as, initial_agent, observ
 from a2catvn_jax.agent.losses import DEPTH_SCALE, downsize_mean
 from a2catvn_jax.agent.networks import VN_HEADS, Networks, make_networks
 from a2catvn_jax.agent.update import make_grad_norms, make_update
-from a2catvn_jax.env import NavEnv
+from a2catvn_jax.env import make_env
 from a2catvn_jax.env.scenes.spec import SEGMENTATION_COLORS
 from a2catvn_jax.run.checkpoint import Checkpointer
-from a2catvn_jax.run.restore import locate, make_env
+from a2catvn_jax.run.restore import house_env, locate
 from a2catvn_jax.run.topdown import TopdownMap
 
 RECORD_OBS = ("rgb", "depth", "segmentation_rgb", "target_rgb", "target_depth", "target_segmentation_rgb")
@@ -63,7 +63,7 @@ def load_agent(workdir, step: Optional[int] = None, houses: str = "train", overr
     keys cannot change). Raises `CheckpointError`, `ConfigError` and `ValueError`.
     """
     run = locate(workdir, step, overrides)
-    env = make_env(run.cfg.env, houses)
+    env = house_env(run.cfg.env, houses)
     r = run.restore()
     return Agent(r.workdir, r.run_cfg, r.cfg, env, r.networks, r.params, r.step, r.frames)
 
@@ -81,7 +81,7 @@ def gradient_norms(workdir, step: Optional[int] = None, batches: int = 8) -> dic
         raise ValueError(f"batches must be >= 1, got {batches}")
     run = locate(workdir, step)
     cfg = run.run_cfg
-    env = NavEnv(cfg.env)
+    env = make_env(cfg.env)
     networks = make_networks(cfg, env.num_actions)
     template = jax.eval_shape(make_update(env, networks, cfg).init, jax.random.PRNGKey(0))
     ckpt = Checkpointer(run.workdir, create=False)

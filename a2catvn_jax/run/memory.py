@@ -145,10 +145,10 @@ def probe_cost(cfg, env, batch: int) -> tuple[int, Optional[int]]:
     one device, compiled on abstract shapes in the world of `env` (nothing allocated)."""
     from a2catvn_jax.agent.networks import make_networks
     from a2catvn_jax.agent.update import make_update, repeated
-    from a2catvn_jax.env import NavEnv
+    from a2catvn_jax.env import make_env
 
     small = dataclasses.replace(cfg, seed=0, env=dataclasses.replace(cfg.env, num_envs=batch))
-    small_env = NavEnv(small.env, world=env.world)
+    small_env = make_env(small.env, world=getattr(env, "world", None))
     init, update = make_update(small_env, make_networks(small, small_env.num_actions), small)
     abstract = jax.eval_shape(init, jax.random.PRNGKey(0))
     sizes = update_bytes(repeated(update).lower(abstract, np.int32(1)).compile())

@@ -35,7 +35,7 @@ from a2catvn_jax.agent.networks import make_networks
 from a2catvn_jax.agent.types import FrameTruth
 from a2catvn_jax.agent.update import frame_truth, learner, targets_of, vn_terms
 from a2catvn_jax.config import save_config
-from a2catvn_jax.env import NavEnv
+from a2catvn_jax.env import NavEnv, require_world
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.run.checkpoint import PARTIAL, io_reason, quiet_abandoned_io, silence_abandoned_reads
 from a2catvn_jax.run.logger import MetricsWriter, truncate_metrics
@@ -95,6 +95,7 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
     if truncate_metrics(workdir, 0, name="pretrain_metrics", key="epoch"):
         log(f"removed the rows of an unfinished pre-training from {workdir / 'pretrain_metrics.jsonl'}")
     pc = cfg.pretrain
+    require_world(cfg.env, "pre-training")
     env = NavEnv(cfg.env)
     networks = make_networks(cfg, env.num_actions)
     spec = learner(cfg)

@@ -18,7 +18,7 @@ import jax
 
 from a2catvn_jax.agent.networks import Networks, Params, make_networks
 from a2catvn_jax.config import Config, ConfigError, apply_overrides
-from a2catvn_jax.env import NavEnv, World, action_names
+from a2catvn_jax.env import NavEnv, World, action_names, require_world
 from a2catvn_jax.env.scenes import mjcf
 from a2catvn_jax.env.world import make_scenes, share_shapes
 from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError, config_differences, read_run_config
@@ -80,10 +80,11 @@ def _scenes(env_cfg, houses: str, scenes: Optional[list] = None) -> tuple[list, 
     return scenes, env_cfg.scene.seed + (NEW_TARGETS_OFFSET if houses == "new-targets" else 0)
 
 
-def make_env(env_cfg, houses: str = "train", scenes: Optional[list] = None) -> NavEnv:
+def house_env(env_cfg, houses: str = "train", scenes: Optional[list] = None) -> NavEnv:
     """A `NavEnv` in the run's training houses, in held-out houses generated with offset
     seeds, or in the training houses with new goals ("new-targets"). `scenes`: the
     training houses when already built (train and new-targets use them)."""
+    require_world(env_cfg, "evaluation")
     scenes, seed = _scenes(env_cfg, houses, scenes)
     return NavEnv(env_cfg, world=World(env_cfg, scenes, seed=seed))
 
@@ -91,6 +92,7 @@ def make_env(env_cfg, houses: str = "train", scenes: Optional[list] = None) -> N
 def make_envs(env_cfg, houses=HOUSES) -> dict:
     """houses -> `NavEnv` of each set, built with one geom layout and padded to common
     shapes (`world.share_shapes`) so that they share compiled functions."""
+    require_world(env_cfg, "evaluation")
     check_houses(*houses)
     sets, train = {}, None
     for h in houses:

@@ -30,7 +30,7 @@ from tqdm import tqdm
 from a2catvn_jax.agent.networks import make_networks
 from a2catvn_jax.agent.update import (NONFINITE, UPDATES, frames_per_update, make_grad_norms, make_update, repeated,
                                       sharding_of, total_updates)
-from a2catvn_jax.env import NavEnv
+from a2catvn_jax.env import make_env
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.run import distributed
 from a2catvn_jax.run.checkpoint import DATA_FORMAT, Checkpointer, CheckpointError
@@ -68,7 +68,7 @@ def _build(cfg):
     `cfg`, whose seed (only the run's first key) is zeroed. The last configuration's are
     kept: another run of it in this process (a notebook cell run again, the next seed of
     an experiment) traces and compiles nothing again."""
-    env = NavEnv(cfg.env)
+    env = make_env(cfg.env)
     networks = make_networks(cfg, env.num_actions)
     grad_norms = make_grad_norms(env, networks, cfg) if cfg.train.grad_norm_every else None
     return env, networks, make_update(env, networks, cfg), grad_norms
@@ -128,13 +128,9 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     if jax.process_count() > 1:
         where += f" of {jax.process_count()} processes"
     log(f"built {env.num_scenes} scene(s), {env.num_actions} actions, "
-        f"{env.num_envs} environments{where} in {time.perf_counter() - t_build:.1f} s, rendered by {env.world.backend}")
-    if env.world.backend_note:
-        log(env.world.backend_note)
-    if env.world.backend == "raycast":
-        chunk = env.world.spec.chunk(env.num_envs // len(used))
-        log(f"the ray caster renders {chunk} of each device's {env.num_envs // len(used)} frames per pass "
-            f"(the default on {used[0].platform})")
+        f"{env.num_envs} environments{where} in {time.perf_counter() - t_build:.1f} s, rendered by {env.renderer}")
+    for line in env.render_notes(env.num_envs // len(used), used[0].platform):
+        log(line)
     key = jax.random.PRNGKey(cfg.seed)
     template = jax.eval_shape(init, key)
     layout = None
