@@ -26,6 +26,9 @@ class Memo:
         self._values.move_to_end(key)
         return self._values[key]
 
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self._values
+
     def values(self) -> list:
         return list(self._values.values())
 

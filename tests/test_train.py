@@ -194,12 +194,19 @@ def test_runs_of_one_configuration_share_its_build_and_keep_their_seeds(tmp_path
     run is the same before and after another has used the kept functions."""
     from a2catvn_jax.run import training
 
-    quiet = dict(max_updates=2, progress=False, log=lambda *_: None)
+    quiet = dict(max_updates=2, progress=False)
     training._build.cache_clear()
-    _, first, _ = train(_cfg("seed=1"), tmp_path / "first", **quiet)
-    _, other, _ = train(_cfg(), tmp_path / "other", **quiet)
-    _, again, _ = train(_cfg("seed=1"), tmp_path / "again", **quiet)
+    training.COMPILED.clear()
+    logs = {name: [] for name in ("first", "other", "again")}
+    _, first, _ = train(_cfg("seed=1"), tmp_path / "first", log=logs["first"].append, **quiet)
+    _, other, _ = train(_cfg(), tmp_path / "other", log=logs["other"].append, **quiet)
+    _, again, _ = train(_cfg("seed=1"), tmp_path / "again", log=logs["again"].append, **quiet)
     assert training._build.cache_info().misses == 1 and training._build.cache_info().hits == 2
+    assert len(training.COMPILED) == 1  # one compiled update loop served the three runs
+    assert any(line.startswith("compiled the update in") for line in logs["first"])
+    for name in ("other", "again"):
+        assert any("compiled by an earlier run of this configuration in this process is reused" in line
+                   for line in logs[name]), logs[name]
     assert all(np.array_equal(a, b) for a, b in zip(_leaves(first), _leaves(again)))
     assert not all(np.array_equal(a, b) for a, b in zip(_leaves(first.params), _leaves(other.params)))
 

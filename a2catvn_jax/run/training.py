@@ -32,6 +32,7 @@ from a2catvn_jax.agent.update import (NONFINITE, UPDATES, frames_per_update, mak
                                       sharding_of, total_updates)
 from a2catvn_jax.env import make_env
 from a2catvn_jax.errors import UserError
+from a2catvn_jax.memo import Memo
 from a2catvn_jax.run import distributed
 from a2catvn_jax.run.checkpoint import DATA_FORMAT, Checkpointer, CheckpointError
 from a2catvn_jax.run.logger import Interval, MetricsWriter, truncate_metrics
@@ -60,6 +61,12 @@ class StopFlag:
         self.stop = True
         again = " (Ctrl-C again to abort without a checkpoint)" if signum == signal.SIGINT else ""
         print(f"\nstopping after the updates in progress{again}", file=sys.stderr)
+
+
+# The compiled update loops of the last two (configuration, devices, updates per call):
+# another run of one in this process (the next seed of an experiment, a notebook cell run
+# again, a resume) compiles nothing again.
+COMPILED = Memo("training's compiled update loops", keep=2)
 
 
 @functools.lru_cache(maxsize=1)
@@ -141,10 +148,14 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     # recompile. Its memory and the state's are checked before either is allocated (run/memory.py).
     per_call = updates_per_call(cfg, used[0].platform)
     t_compile = time.perf_counter()
+    compiled_key = (dataclasses.replace(cfg, seed=0), tuple((d.process_index, d.id) for d in used), per_call)
+    reused = compiled_key in COMPILED
     run_updates, memory = checked_compile(
-        cfg, env, lambda abstract: repeated(update_fn, layout, loop=per_call > 1).lower(abstract, np.int32(1)).compile(),
+        cfg, env, lambda abstract: COMPILED.get(compiled_key, lambda: repeated(update_fn, layout, loop=per_call > 1)
+                                                .lower(abstract, np.int32(1)).compile()),
         template, used)
-    log(f"compiled the update in {time.perf_counter() - t_compile:.1f} s; "
+    log((f"compiled the update in {time.perf_counter() - t_compile:.1f} s; " if not reused
+         else "the update compiled by an earlier run of this configuration in this process is reused; ")
         + (f"{per_call} updates per call" if per_call > 1 else "one update per call")
         + ("" if cfg.train.updates_per_call else f" (the default on {used[0].platform})"))
     log(memory)
