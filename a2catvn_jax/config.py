@@ -60,6 +60,7 @@ __all__ = [
     "parse_override",
     "save_config",
     "MIN_IMAGE_SIZE",
+    "MIN_ROOM_SIDE",
     "RP_FRAMES",
 ]
 
@@ -67,6 +68,7 @@ __all__ = [
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # the YAML files of a source checkout
 MIN_IMAGE_SIZE = 16  # smallest env.render.image_size the network takes
 RP_FRAMES = 3  # consecutive frames seen by the reward-prediction head (agent.networks)
+MIN_ROOM_SIDE = 1.5  # metres: the smallest room side a generated house may have (env.scene.room_size)
 BODY_MARGIN = 0.1  # metres: the agent's body reaches this far above its camera (env.world)
 
 
@@ -130,8 +132,8 @@ class SceneConfig(Section):
         if min(self.grid) < 1:
             yield k("grid"), f"both entries must be >= 1, got {list(self.grid)}"
         lo, hi = self.room_size
-        if lo < 1.5:
-            yield k("room_size"), f"minimum room side must be >= 1.5 m, got {lo}"
+        if lo < MIN_ROOM_SIDE:
+            yield k("room_size"), f"minimum room side must be >= {MIN_ROOM_SIDE} m, got {lo}"
         if lo > hi:
             yield k("room_size"), f"minimum room side {lo} exceeds maximum {hi}"
         if self.kind == "mjcf" and (self.mjcf_path or "").strip() == "":

@@ -5,8 +5,10 @@ frames/s."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import sys
+import types
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +16,7 @@ import pytest
 
 from a2catvn_jax import benchmark
 from a2catvn_jax.bench import profile as benchmark_profile
+from a2catvn_jax.bench import throughput
 from a2catvn_jax.bench.profile import AUX_TERMS, matmul_flops, profile_update
 from a2catvn_jax.config import load_config
 from a2catvn_jax.study import workers
@@ -138,6 +141,10 @@ def test_train_benchmark_at_several_batch_sizes(monkeypatch, capsys, tmp_path):
         return [0] * len(commands)
 
     monkeypatch.setattr(workers, "run_pool", pool)
+    # A clock that moves one second per reading: every timed interval is 1 s, so the rates
+    # are exactly the work of one interval.
+    clock = itertools.count()
+    monkeypatch.setattr(throughput, "time", types.SimpleNamespace(perf_counter=lambda: float(next(clock))))
     tiny = TINY_LEARNER + ["env.scene.num_scenes=1"] + ONLY_DEPTH
     out = tmp_path / "rows.json"
     benchmark.main(["train", "--configs", "quickstart", "--updates", "1", "--batch-sizes", "4", "6", "--json", str(out),
@@ -146,7 +153,10 @@ def test_train_benchmark_at_several_batch_sizes(monkeypatch, capsys, tmp_path):
     rows = json.loads(out.read_text())
     assert [r["batch"] for r in rows] == [4, 6]  # 4: the tiny learner's, compiled by the test above (cache)
     for r in rows:
-        assert r["train_fps"] > 0 and 0 < r["state_gib"] < r["peak_rss_gib"] and r["update_gib"] > 0
+        assert (r["init_s"], r["compile_s"], r["first_s"]) == (1.0, 1.0, 1.0)
+        assert r["train_fps"] == 4 * r["batch"]  # one update of 4-step rollouts in the timed second
+        assert r["env_fps"] == 2 * 4 * r["batch"]  # two rollouts of 4 steps, random actions
+        assert 0 < r["state_gib"] < r["peak_rss_gib"] and 0 < r["update_gib"] < 1
     # The replay keeps every environment of these small batches: the state grows with B.
     assert rows[1]["state_gib"] > rows[0]["state_gib"]
     assert "peak GiB" in capsys.readouterr().out
@@ -178,27 +188,35 @@ def test_train_benchmark_process_failure_is_one_line(monkeypatch, capsys, tmp_pa
     assert len(err) == 1 and "killed by signal 9 (the kernel's out-of-memory killer" in err[0] and "4096" in err[0]
 
 
-def test_network_benchmark_compares_conv_impls(capsys, tmp_path):
+def _one_second_per_reading(monkeypatch):
+    """The benchmarks' clock moves one second per reading: each timed pass takes 1 s."""
+    clock = itertools.count()
+    monkeypatch.setattr(throughput, "time", types.SimpleNamespace(perf_counter=lambda: float(next(clock))))
+
+
+def test_network_benchmark_compares_conv_impls(capsys, tmp_path, monkeypatch):
     """`benchmark network --conv-impls`: every listed implementation timed, one row per network."""
+    _one_second_per_reading(monkeypatch)
     out = tmp_path / "rows.json"
     benchmark.main(["network", "--resolution", "16", "--frames", "4", "--targets", "2", "--repeats", "2",
                     "--conv-impls", "xla", "matmul", "--json", str(out), "--set", *TINY_LEARNER])
     (row,) = json.loads(out.read_text())
     assert row["network"] == "default" and set(row["fps"]) == {"xla", "matmul"}
-    assert all(v > 0 for v in row["fps"].values())
+    assert row["fps"] == {"xla": 4.0, "matmul": 4.0}  # 4 frames per (1 s) pass
     assert "conv_impl=matmul" in capsys.readouterr().out
 
 
-def test_network_benchmark_times_each_pass_and_the_stream_layers(capsys, tmp_path):
+def test_network_benchmark_times_each_pass_and_the_stream_layers(capsys, tmp_path, monkeypatch):
     """`benchmark network`: JAX as trained, JAX per frame and (when installed) PyTorch;
     `--layers`: conv1 and conv2 of the image stream each way, with auto's choice."""
+    _one_second_per_reading(monkeypatch)
     out = tmp_path / "rows.json"
     small = ["--resolution", "16", "--frames", "4", "--targets", "2", "--repeats", "2", "--json", str(out),
              "--set", *TINY_LEARNER]
     benchmark.main(["network", *small])
     (row,) = json.loads(out.read_text())
-    assert row["jax_fps"] > 0 and row["jax_per_frame_fps"] > 0
-    assert row["torch_fps"] is None or row["torch_fps"] > 0
+    assert row["jax_fps"] == row["jax_per_frame_fps"] == 4.0  # 4 frames per (1 s) pass
+    assert row["torch_fps"] in (None, 4.0)
     benchmark.main(["network", "--layers", *small])
     (row,) = json.loads(out.read_text())
     layers = row["layers"]
@@ -206,5 +224,23 @@ def test_network_benchmark_times_each_pass_and_the_stream_layers(capsys, tmp_pat
     assert layers["conv1"]["shape"] == "8x8/4, 3 -> 4 channels, 16x16 input"
     assert layers["conv2"]["shape"] == "4x4/2, 4 -> 8 channels, 4x4 input"
     for r in layers.values():
-        assert r["xla"] > 0 and r["matmul"] > 0 and r["auto"] in ("xla", "matmul") and r.get("torch", 1) > 0
+        assert r["xla"] == r["matmul"] == 1000.0 and r["auto"] in ("xla", "matmul") and r.get("torch", 1000.0) == 1000.0
     assert "conv2 (4x4/2, 4 -> 8 channels, 4x4 input): XLA convolution" in capsys.readouterr().out
+
+
+def test_compile_benchmark_times_the_compile_alone_at_each_batch(monkeypatch, capsys, tmp_path):
+    """`benchmark compile`: the update compiled on the abstract state at each batch (nothing
+    run); the program is the same size at both batches, and XLA's buffers grow with B."""
+    clock = itertools.count()
+    monkeypatch.setattr(throughput, "time", types.SimpleNamespace(perf_counter=lambda: float(next(clock))))
+    out = tmp_path / "rows.json"
+    benchmark.main(["compile", "--configs", "quickstart", "--batch-sizes", "4", "16", "--json", str(out),
+                    "--set", *TINY_LEARNER, "env.scene.num_scenes=1", *ONLY_DEPTH])
+    small, large = json.loads(out.read_text())
+    assert (small["batch"], large["batch"]) == (4, 16)
+    for r in (small, large):
+        assert (r["build_s"], r["trace_s"], r["compile_s"]) == (1.0, 1.0, 1.0)
+    assert small["hlo_ops"] > 1000 and abs(large["hlo_ops"] - small["hlo_ops"]) < 0.1 * small["hlo_ops"]
+    assert large["update_gib"] > 2 * small["update_gib"] > 0
+    printed = capsys.readouterr().out
+    assert "HLO ops" in printed and f"{large['hlo_ops']:8d}" in printed

@@ -7,6 +7,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from a2catvn_jax.config import MIN_ROOM_SIDE
+
 from .builder import CEILING_THICKNESS, FLOOR_THICKNESS, WALL_OVERLAP, SceneBuilder, quantize
 from .palettes import CEILING, DOOR_FRAME, ROOM_PALETTES, pick_color
 from .placement import Doorway, furnish_room
@@ -87,8 +89,8 @@ def house(
     if rows < 1 or cols < 1:
         raise ValueError(f"grid must have at least one row and column, got {grid}")
     lo, hi = float(room_size[0]), float(room_size[1])
-    if not 1.5 <= lo <= hi:
-        raise ValueError(f"room_size must be (min, max) with 1.5 <= min <= max, got {room_size}")
+    if not MIN_ROOM_SIDE <= lo <= hi:
+        raise ValueError(f"room_size must be (min, max) with {MIN_ROOM_SIDE} <= min <= max, got {room_size}")
     if height < 1.5:
         raise ValueError(f"height must be at least 1.5 m, got {height}")
     t = float(wall_thickness)
