@@ -201,12 +201,29 @@ TWO_DEVICE_EVALUATION = textwrap.dedent(
         raise AssertionError("3 environments over 2 devices")
     except ValueError as e:
         assert "env.num_envs=3 environments cannot be split evenly over 2 devices" in str(e), e
+    # Pre-training splits each batch over the devices: the parameters of one device.
+    import numpy as np
+    from a2catvn_jax.run.distributed import DevicesError
+    from a2catvn_jax.run.pretraining import pretrain
+    small = ["pretrain.dataset_size=64", "pretrain.epochs=2", "pretrain.batch_size=16"]
+    pre = load_config(None, TINY_ROOM + small)
+    lines = []
+    split = pretrain(pre, tmp + "/pre_split", log=lines.append)
+    assert any("each batch of 16 is split over 2 cpu devices" in line for line in lines), lines
+    whole = pretrain(pre, tmp + "/pre_whole", log=quiet, devices=1)
+    for a, b in zip(jax.tree_util.tree_leaves(jax.device_get(split)), jax.tree_util.tree_leaves(jax.device_get(whole))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-4, atol=2e-6)
+    try:
+        pretrain(load_config(None, TINY_ROOM + small[:2] + ["pretrain.batch_size=15"]), tmp + "/pre_odd", log=quiet)
+        raise AssertionError("15 samples over 2 devices")
+    except DevicesError as e:
+        assert "pretrain.batch_size=15 samples cannot be split evenly over 2 devices" in str(e), e
     print("OK")
     """
 )
 
 
-def test_evaluation_splits_the_environments_over_two_devices_with_the_same_episodes(tmp_path):
+def test_evaluation_and_pretraining_split_over_two_devices_with_the_one_device_result(tmp_path):
     root = Path(__file__).resolve().parents[1]
     proc = subprocess.run([sys.executable, "-c", TWO_DEVICE_EVALUATION, str(tmp_path)], cwd=root, capture_output=True,
                           text=True, timeout=900)

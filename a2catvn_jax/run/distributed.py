@@ -30,16 +30,18 @@ class DevicesError(UserError, ValueError):
     """The environments cannot be split over the devices asked for."""
 
 
-def devices_for(num_envs: int, devices: Optional[int] = None) -> list:
-    """The devices `num_envs` environments are split over: all local ones, or the first
-    `devices`; with several processes every device of every process. The environments
-    must split evenly over them (`DevicesError`, one line naming both numbers)."""
+def devices_for(num_envs: int, devices: Optional[int] = None, what: Optional[str] = None) -> list:
+    """The devices `num_envs` environments (or the `what` of that count, e.g.
+    "pretrain.batch_size=64 samples") are split over: all local ones, or the first
+    `devices`; with several processes every device of every process. They must split
+    evenly over them (`DevicesError`, one line naming both numbers)."""
+    what = what or f"env.num_envs={num_envs} environments"
     if jax.process_count() > 1:
         if devices is not None:
             raise DevicesError(f"--devices {devices}: a run of several processes uses every device of each")
         every = jax.devices()
         if num_envs % len(every):
-            raise DevicesError(f"env.num_envs={num_envs} environments cannot be split evenly over the {len(every)} "
+            raise DevicesError(f"{what} cannot be split evenly over the {len(every)} "
                                f"devices of {jax.process_count()} processes: make it a multiple of {len(every)}")
         return every
     local = jax.local_devices()
@@ -47,8 +49,7 @@ def devices_for(num_envs: int, devices: Optional[int] = None) -> list:
     if not 1 <= n <= len(local):
         raise DevicesError(f"--devices {n}: this machine has {len(local)} {local[0].platform} device(s)")
     if num_envs % n:
-        raise DevicesError(f"env.num_envs={num_envs} environments cannot be split evenly over {n} devices: "
-                           f"make it a multiple of {n} or pass --devices")
+        raise DevicesError(f"{what} cannot be split evenly over {n} devices: make it a multiple of {n} or pass --devices")
     return local[:n]
 
 

@@ -6,7 +6,9 @@ and segmentation ground truth, each paired with a random target image of its sce
 and trains the network's conv base and its depth / observation-segmentation /
 target-segmentation heads on them with Adam for `pretrain.epochs` epochs (the losses
 and weights of training: `train.loss_weights.{depth,segmentation,target_segmentation}`).
-One jit-compiled step serves every batch.
+One jit-compiled step serves every batch. Each batch is split over every local device
+(or the first `devices`), the parameters replicated: the same steps as on one device,
+to float tolerance.
 
 The work directory gets `config.yaml`, `pretrain_metrics.jsonl` (one row per epoch)
 and the trained parameters (conv1-conv4 and the heads) as an orbax checkpoint in
@@ -37,6 +39,7 @@ from a2catvn_jax.agent.update import frame_truth, learner, targets_of, vn_terms
 from a2catvn_jax.config import save_config
 from a2catvn_jax.env import NavEnv, require_world
 from a2catvn_jax.errors import UserError
+from a2catvn_jax.run import distributed
 from a2catvn_jax.run.checkpoint import PARTIAL, io_reason, quiet_abandoned_io, silence_abandoned_reads
 from a2catvn_jax.run.logger import MetricsWriter, truncate_metrics
 from a2catvn_jax.run.workdir import locked
@@ -80,8 +83,9 @@ def make_dataset(cfg, env: NavEnv, size: int, key) -> dict:
 
 
 @locked("pretrain")  # one writer per work directory (run/workdir.py)
-def pretrain(cfg, workdir, *, log=None) -> dict:
-    """Pre-train in `workdir`; returns the parameters."""
+def pretrain(cfg, workdir, *, log=None, devices=None) -> dict:
+    """Pre-train in `workdir` with each batch split over `devices` local devices (default:
+    all); returns the parameters."""
     log = log or functools.partial(print, flush=True)
     w = cfg.train.loss_weights
     if w.depth == 0 and w.segmentation == 0 and w.target_segmentation == 0:
@@ -96,6 +100,7 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
         log(f"removed the rows of an unfinished pre-training from {workdir / 'pretrain_metrics.jsonl'}")
     pc = cfg.pretrain
     require_world(cfg.env, "pre-training")
+    used = distributed.devices_for(pc.batch_size, devices, what=f"pretrain.batch_size={pc.batch_size} samples")
     env = NavEnv(cfg.env)
     networks = make_networks(cfg, env.num_actions)
     spec = learner(cfg)
@@ -117,11 +122,21 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
         terms = vn_terms(spec, networks, params, conv4, truth, target_seg[batch["target"]])
         return sum(getattr(w, k) * v for k, v in terms.items()), terms
 
-    @jax.jit
-    def step(params, opt_state, batch):
+    def step_fn(params, opt_state, batch):
         (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, dict(terms, total=loss)
+
+    place = lambda batch: batch  # noqa: E731
+    step = jax.jit(step_fn)
+    if len(used) > 1:  # each batch split over the devices, the rest replicated; XLA reduces the gradients
+        mesh = jax.sharding.Mesh(np.array(used), ("batch",))
+        split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+        whole = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+        params, opt_state = jax.device_put((params, opt_state), whole)
+        place = lambda batch: jax.device_put(batch, split)  # noqa: E731
+        step = jax.jit(step_fn, in_shardings=(whole, whole, split), out_shardings=(whole, whole, whole))
+        log(f"each batch of {pc.batch_size} is split over {len(used)} {used[0].platform} devices")
 
     writer = MetricsWriter(workdir, tensorboard=False, name="pretrain_metrics", note=lambda: "nothing was saved")
     try:
@@ -137,7 +152,7 @@ def pretrain(cfg, workdir, *, log=None) -> dict:
             sums, t0 = {}, time.perf_counter()
             for b in range(batches):
                 idx = order[b * pc.batch_size : (b + 1) * pc.batch_size]
-                params, opt_state, terms = step(params, opt_state, {k: v[idx] for k, v in data.items()})
+                params, opt_state, terms = step(params, opt_state, place({k: v[idx] for k, v in data.items()}))
                 for k, v in terms.items():
                     sums[k] = sums.get(k, 0.0) + v
             row = {"epoch": epoch, **{f"loss/{k}": float(v) / batches for k, v in sums.items()},
