@@ -23,8 +23,8 @@ import pytest
 from a2catvn_jax.agent import layers, networks
 from a2catvn_jax.agent import update as update_lib
 from a2catvn_jax.config import ConfigError, load_config
-from a2catvn_jax.env import NavEnv
-from tiny import TINY_LEARNER
+from a2catvn_jax.env import make_env
+from tiny import TINY_LEARNER, TINY_SYNTHETIC
 
 ROOT = Path(__file__).resolve().parents[1]
 PRESET = ROOT / "configs" / "presets" / "authors_network.yaml"
@@ -185,10 +185,9 @@ def test_uniform_fan_in_initialisation():
 def test_one_update_with_the_preset():
     """The tiny learner (small channels) with the preset's kernels, strides, padding, heads
     and initialisation, at 48 px."""
-    cfg = load_config(PRESET, TINY_LEARNER + ["env.render.image_size=48", "env.scene.num_scenes=1",
-                                              "env.scene.grid=[1,1]"])
+    cfg = load_config(PRESET, TINY_SYNTHETIC + ["env.render.image_size=48"])
     assert cfg.agent.vision_heads == "transposed" and cfg.agent.conv_padding == "valid"
-    env = NavEnv(cfg.env)
+    env = make_env(cfg.env)
     fns = update_lib.make_update(env, networks.make_networks(cfg, env.num_actions), cfg)
     ts = fns.init(jax.random.PRNGKey(0))
     before = jax.tree_util.tree_map(np.asarray, ts.params)
