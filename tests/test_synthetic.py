@@ -155,5 +155,7 @@ def test_what_needs_houses_refuses_the_synthetic_environment_in_one_line(env):
     assert isinstance(env, SyntheticEnv)
     with pytest.raises(ConfigError, match="evaluation needs the MuJoCo environment.*env.kind is 'synthetic'"):
         require_world(env.cfg, "evaluation")
+    with pytest.raises(ConfigError, match="env.goals_per_scene=65: the synthetic environment has 64 poses"):
+        _env("env.goals_per_scene=65")
     with pytest.raises(ValueError, match="no world"):
         env.step(env.reset(jax.random.PRNGKey(0)), jnp.zeros((6,), jnp.int32), world=object())

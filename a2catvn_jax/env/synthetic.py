@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from a2catvn_jax.config import EnvConfig
+from a2catvn_jax.configio import ConfigError
 from a2catvn_jax.env.navenv import ACTION_SETS, Info, Observation, State, action_names, uniform_index
 from a2catvn_jax.env.scenes.spec import SEGMENTATION_COLORS
 
@@ -76,7 +77,7 @@ class SyntheticEnv:
         self._poses = jnp.asarray(_pose_table())
         S, G = cfg.scene.num_scenes, cfg.goals_per_scene
         if G > POSES:
-            raise ValueError(f"env.goals_per_scene={G}: the synthetic environment has {POSES} poses per scene")
+            raise ConfigError(f"env.goals_per_scene={G}: the synthetic environment has {POSES} poses per scene")
         rng = np.random.default_rng(cfg.scene.seed + seed_offset)
         # Colours: SIDE * SIDE cells, then HEADINGS headings, then the wall, per scene.
         self._palette = jnp.asarray(rng.integers(0, 256, (S, SIDE * SIDE + HEADINGS + 1, 3), dtype=np.uint8))
