@@ -294,6 +294,7 @@ class TrainConfig(Section):
     learning_rate: Positive = 7e-4
     lr_schedule: Literal["linear", "constant"] = "linear"  # linear: lr * (f_max - f) / f_max
     lr_scaling: Literal["none", "linear", "sqrt"] = "none"  # learning_rate times B / 16 or sqrt(B / 16) (B: env.num_envs)
+    lr_warmup_frames: Annotated[int, Strict(), Field(ge=0)] = 0  # the learning rate rises linearly from 0 over these frames, then follows lr_schedule
     optimizer: Literal["rmsprop", "adam", "lamb"] = "rmsprop"  # after the clip: RMSprop (paper), Adam or LAMB
     rmsprop_decay: Fraction = 0.99  # RMSprop alpha
     rmsprop_eps: Positive = 1e-5  # the optimiser's epsilon (RMSprop's outside the square root; Adam's and LAMB's too)

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from a2catvn_jax.config import load_config
+from a2catvn_jax.configio import ConfigError
 from a2catvn_jax.run.distributed import DevicesError, devices_for
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.training import next_stop, train, updates_per_call
@@ -132,6 +133,23 @@ def test_learning_rate_scales_with_the_batch():
     assert lr(256, "none") == pytest.approx(7e-4)
     assert lr(256, "linear") == pytest.approx(7e-4 * 16) and lr(256, "sqrt") == pytest.approx(7e-4 * 4)
     assert lr(16, "linear") == pytest.approx(7e-4) and lr(4, "sqrt") == pytest.approx(7e-4 / 2)
+
+
+def test_learning_rate_warms_up_then_follows_its_schedule():
+    """`train.lr_warmup_frames`: a linear rise over ceil(W / frames per update) updates
+    (here 16 environments x 20 steps = 320 frames: 1,000 frames are 4 updates), then the
+    paper's linear decay; without it the schedule is the decay alone."""
+    from a2catvn_jax.agent.update import learning_rate_schedule
+
+    keys = ["train.total_frames=32000", "train.lr_scaling=linear", "env.num_envs=16"]  # 100 updates, lr 7e-4
+    plain = learning_rate_schedule(load_config(None, keys))
+    warm = learning_rate_schedule(load_config(None, keys + ["train.lr_warmup_frames=1000"]))
+    decay = [7e-4 * (100 - n) / 100 for n in range(8)]
+    np.testing.assert_allclose([float(plain(n)) for n in range(8)], decay, rtol=1e-6)
+    want = [decay[n] * min(1.0, (n + 1) / 4) for n in range(8)]
+    np.testing.assert_allclose([float(warm(n)) for n in range(8)], want, rtol=1e-6)
+    with pytest.raises(ConfigError, match="lr_warmup_frames"):
+        load_config(None, ["train.lr_warmup_frames=-1"])
 
 
 @pytest.mark.parametrize("optimizer", ["rmsprop", "adam", "lamb"])

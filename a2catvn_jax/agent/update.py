@@ -82,11 +82,18 @@ def learning_rate(cfg: Config) -> float:
 
 
 def learning_rate_schedule(cfg: Config) -> optax.Schedule:
-    """lr * (f_max - f) / f_max (paper), or a constant; lr scaled by `learning_rate`."""
+    """lr * (f_max - f) / f_max (paper), or a constant; lr scaled by `learning_rate`;
+    with `train.lr_warmup_frames` W, times min(1, (n + 1) / ceil(W / frames per update))
+    at update n (a linear warm-up, for large batches)."""
     lr = learning_rate(cfg)
     if cfg.train.lr_schedule == "linear":
-        return optax.linear_schedule(lr, 0.0, total_updates(cfg))
-    return optax.constant_schedule(lr)
+        base = optax.linear_schedule(lr, 0.0, total_updates(cfg))
+    else:
+        base = optax.constant_schedule(lr)
+    warmup = -(-cfg.train.lr_warmup_frames // frames_per_update(cfg))
+    if warmup <= 1:
+        return base
+    return lambda n: base(n) * jnp.minimum(1.0, (n + 1) / warmup)
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
