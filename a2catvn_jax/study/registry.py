@@ -39,6 +39,9 @@ CLIP_40 = "train.max_grad_norm=40"  # above every gradient norm measured on the 
 # at B = 256; docs/results.md, "Larger batches".)
 LARGE_BATCH = ("train.lr_scaling=sqrt", CLIP_40)
 LARGE_BATCH_LINEAR = ("train.lr_scaling=linear", CLIP_40)
+# ... the linear scaling with a warm-up over the first 500k frames (RMSprop's running mean
+# of squared gradients starts at 0, so its first steps are about ten times the rate).
+LARGE_BATCH_WARMUP = ("train.lr_scaling=linear", "train.lr_warmup_frames=500000", CLIP_40)
 BLIND = ("agent.blind=true",)  # agent.blind=both
 # The loss and replay settings of the authors' published code where they differ from the
 # defaults (docs/method.md), and their network (configs/presets/authors_network.yaml; its
@@ -223,11 +226,13 @@ EXPERIMENTS = {e.name: e for e in (
          Variant("B 64, Table I", batch(64)), Variant("B 256, Table I", batch(256)),
          Variant("B 64, sqrt-scaled lr, clip 40", batch(64) + LARGE_BATCH),
          Variant("B 256, sqrt-scaled lr, clip 40", batch(256) + LARGE_BATCH),
-         Variant("B 256, linear-scaled lr, clip 40", batch(256) + LARGE_BATCH_LINEAR), BLIND_CONTROL),
+         Variant("B 256, linear-scaled lr, clip 40", batch(256) + LARGE_BATCH_LINEAR),
+         Variant("B 256, linear-scaled lr, warm-up, clip 40", batch(256) + LARGE_BATCH_WARMUP), BLIND_CONTROL),
         evaluations=("train",),
         paper="Table I trains 16 environments. At the same frame budget B environments make 16 / B as many "
-              "updates; the large-batch candidates scale the learning rate by sqrt(B / 16) or B / 16 and "
-              "clip at 40 (B 16 with the clip at 40 is the clipping experiment's run).",
+              "updates; the large-batch candidates scale the learning rate by sqrt(B / 16) or B / 16 (with "
+              "or without a warm-up over 500k frames) and clip at 40 (B 16 with the clip at 40 is the "
+              "clipping experiment's run).",
     ),
     Experiment(
         "grid", "grid actions on small rooms: A2CAT-VN vs A2C", "grid",
