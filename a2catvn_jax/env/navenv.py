@@ -226,7 +226,7 @@ class NavEnv:
         frame = self._render(w, scene, info.pose, data)
         info = self._count_views(w, info, frame, jnp.zeros((B,), bool))
         zeros = jnp.zeros((B,), jnp.float32)
-        metrics = self._metrics(zeros > 1, zeros > 1, info, zeros, frame.fallback)
+        metrics = episode_metrics(zeros > 1, zeros > 1, info, frame.fallback)
         return State(self._obs(w, frame, info), zeros, zeros > 1, zeros > 1, metrics, info, data)
 
     def step(self, state: State, action, world: Optional[WorldArrays] = None) -> State:
@@ -264,7 +264,7 @@ class NavEnv:
         data = self.world.place_agent(data, new_info.pose)
         frame = self._render(w, new_info.scene, new_info.pose, data)
         new_info = self._count_views(w, new_info, frame, ~done)
-        metrics = self._metrics(success, truncated, ended, reward, frame.fallback)
+        metrics = episode_metrics(success, truncated, ended, frame.fallback)
         return State(self._obs(w, frame, new_info), reward, success, truncated, metrics, new_info, data)
 
     def with_data(self, state: State, world: Optional[WorldArrays] = None) -> State:
@@ -490,18 +490,20 @@ class NavEnv:
         cam_tilt = jnp.clip(cam_tilt + tilt, -max_tilt, max_tilt)
         return jnp.concatenate([p1, jnp.stack([yaw, cam_tilt])]), frac * jnp.linalg.norm(step)
 
-    def _metrics(self, success, truncated, ended: Info, reward, fallback) -> dict:
-        d0 = ended.start_distance
-        spl = success * d0 / jnp.maximum(jnp.maximum(ended.path_length, d0), 1e-6)
-        return {
-            "success": success,
-            "truncated": truncated,
-            "episode_length": ended.step,
-            "episode_return": ended.episode_return,
-            "episode_spl": spl,
-            "episode_start_distance": d0,
-            "fallback": fallback,
-        }
+def episode_metrics(success, truncated, ended: Info, fallback) -> dict:
+    """`State.metrics` of a step: its flags and, for the episodes it ended (`ended`:
+    their info at the step), length, return, SPL and start distance."""
+    d0 = ended.start_distance
+    spl = success * d0 / jnp.maximum(jnp.maximum(ended.path_length, d0), 1e-6)
+    return {
+        "success": success,
+        "truncated": truncated,
+        "episode_length": ended.step,
+        "episode_return": ended.episode_return,
+        "episode_spl": spl,
+        "episode_start_distance": d0,
+        "fallback": fallback,
+    }
 
 
 def action_names(cfg: EnvConfig) -> tuple[str, ...]:

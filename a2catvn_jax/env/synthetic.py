@@ -34,7 +34,8 @@ import numpy as np
 
 from a2catvn_jax.config import EnvConfig
 from a2catvn_jax.configio import ConfigError
-from a2catvn_jax.env.navenv import ACTION_SETS, Info, Observation, State, action_names, uniform_index
+from a2catvn_jax.env.navenv import (ACTION_SETS, Info, NavEnv, Observation, State, action_names, episode_metrics,
+                                    select_where, uniform_index)
 from a2catvn_jax.env.scenes.spec import SEGMENTATION_COLORS
 
 SIDE = 4  # cells along each side of the grid
@@ -97,8 +98,7 @@ class SyntheticEnv:
     def num_targets(self) -> int:
         return self.num_scenes * self.cfg.goals_per_scene
 
-    def target_index(self, scene, goal):
-        return (scene * self.cfg.goals_per_scene + goal).astype(jnp.int32)
+    target_index = NavEnv.target_index  # the same indexing of the targets: scene-major
 
     def target_images(self, world=None) -> dict:
         """rgb [K, h, w, 3] uint8, depth [K, h, w], segmentation [K, h, w] uint8 of the K
@@ -118,7 +118,7 @@ class SyntheticEnv:
         keys, info, cell = self._new_episodes(keys, scene, tau)
         zeros = jnp.zeros((B,), jnp.float32)
         no = zeros > 1
-        return State(self._obs(info, cell), zeros, no, no, self._metrics(no, no, info, zeros), info, cell)
+        return State(self._obs(info, cell), zeros, no, no, episode_metrics(no, no, info, no), info, cell)
 
     def step(self, state: State, action, world=None) -> State:
         _no_world(world)
@@ -146,10 +146,9 @@ class SyntheticEnv:
             keys, sub = jax.vmap(jax.random.split, out_axes=1)(keys)
             scene = jax.vmap(lambda k: jax.random.randint(k, (), 0, self.num_scenes))(sub).astype(jnp.int32)
         keys, fresh, fresh_cell = self._new_episodes(keys, scene, info.complexity)
-        pick = lambda a, b: jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-        new_info = jax.tree_util.tree_map(pick, fresh, ended.replace(key=keys))
-        cell = pick(fresh_cell, cell)
-        metrics = self._metrics(success, truncated, ended, reward)
+        new_info = jax.tree_util.tree_map(lambda a, b: select_where(done, a, b), fresh, ended.replace(key=keys))
+        cell = select_where(done, fresh_cell, cell)
+        metrics = episode_metrics(success, truncated, ended, jnp.zeros_like(success))
         return State(self._obs(new_info, cell), reward, success, truncated, metrics, new_info, cell)
 
     def with_data(self, state: State, world=None) -> State:
@@ -157,9 +156,7 @@ class SyntheticEnv:
         _no_world(world)
         return state.replace(data=_cell_of(state.info.pose))
 
-    def set_complexity(self, state: State, complexity) -> State:
-        tau = jnp.broadcast_to(jnp.asarray(complexity, jnp.float32), state.info.complexity.shape)
-        return state.replace(info=state.info.replace(complexity=tau))
+    set_complexity = NavEnv.set_complexity  # the same: complexity lives in Info
 
     def segmentation_rgb(self, classes):
         return self._colors[classes]
@@ -214,13 +211,6 @@ class SyntheticEnv:
         return Observation(rgb=rgb, depth=depth, segmentation=seg, segmentation_rgb=self._colors[seg],
                            target_rgb=t_rgb, target_depth=t_depth, target_segmentation=t_seg,
                            target_segmentation_rgb=self._colors[t_seg], target_index=index)
-
-    def _metrics(self, success, truncated, ended: Info, reward) -> dict:
-        d0 = ended.start_distance
-        spl = success * d0 / jnp.maximum(jnp.maximum(ended.path_length, d0), 1e-6)
-        return {"success": success, "truncated": truncated, "episode_length": ended.step,
-                "episode_return": ended.episode_return, "episode_spl": spl, "episode_start_distance": d0,
-                "fallback": jnp.zeros_like(ended.step, bool)}
 
 
 def _pose_of(cell):
