@@ -5,6 +5,8 @@ the environment's tests run with each backend in test_env.py."""
 
 from __future__ import annotations
 
+import types
+
 import jax
 import pytest
 
@@ -16,14 +18,23 @@ BASE = ["env.num_envs=4", "env.render.image_size=16", "env.render.culling=false"
         "env.scene.num_scenes=1", "env.goals_per_scene=2"]
 
 
-def test_auto_measures_both_backends_and_takes_the_faster(monkeypatch):
+@pytest.mark.parametrize("faster", ["raycast", "mjx"])
+def test_auto_measures_both_backends_and_takes_the_faster(monkeypatch, faster):
+    """Each backend renders the batch of 4 three times after a warm-up; a clock that makes
+    one render 1 s and the other's 0.5 s gives rates of exactly 4 and 8 frames/s."""
     monkeypatch.setattr(backends, "RATES", backends.Memo("test"))
+    seconds = {"raycast": 0.5 if faster == "raycast" else 1.0, "mjx": 0.5 if faster == "mjx" else 1.0}
+    readings = []
+    for backend in backends.BACKENDS:  # two readings per timed render, three renders each
+        readings += [x for k in range(3) for x in (0.0, seconds[backend])]
+    clock = iter(readings)
+    monkeypatch.setattr(backends, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
     env = NavEnv(load_config(None, BASE + ["env.render.backend=auto"]).env)
     (rates,) = backends.RATES.values()
-    assert set(rates) == {"raycast", "mjx"} and all(r > 0 for r in rates.values())
-    assert env.world.backend == max(rates, key=rates.get)
-    assert env.world.backend_note.startswith(f"env.render.backend auto: {env.world.backend} (")
-    assert "frames/s" in env.world.backend_note
+    assert rates == {b: 4 / seconds[b] for b in ("raycast", "mjx")}
+    assert env.world.backend == faster
+    assert env.world.backend_note.startswith(f"env.render.backend auto: {faster} (")
+    assert f"raycast {4 / seconds['raycast']:.0f} frames/s, mjx {4 / seconds['mjx']:.0f} frames/s" in env.world.backend_note
     # A second world of the same camera, batch and layout reuses the measurement.
     monkeypatch.setattr(backends, "measure", lambda *a, **k: pytest.fail("measured twice"))
     again = NavEnv(load_config(None, BASE + ["env.render.backend=auto"]).env)
@@ -50,19 +61,27 @@ def test_unknown_backend_is_a_config_error():
         load_config(None, ["env.render.backend=opengl"])
 
 
-def test_env_benchmark_times_both_backends(tmp_path, capsys):
-    """`benchmark env` runs each backend on the same episodes, one row each."""
+def test_env_benchmark_times_both_backends(tmp_path, capsys, monkeypatch):
+    """`benchmark env` runs each backend on the same episodes, one row each: 2 steps of
+    2 environments per timed interval."""
+    import itertools
     import json
 
     from a2catvn_jax import benchmark
+    from a2catvn_jax.bench import throughput
+
+    wall, cpu = itertools.count(), itertools.count()
+    monkeypatch.setattr(throughput, "time", types.SimpleNamespace(perf_counter=lambda: float(next(wall)),
+                                                                  process_time=lambda: float(next(cpu))))
 
     out = tmp_path / "env.json"
     benchmark.main(["env", "--batch-sizes", "2", "--resolutions", "16", "--steps", "2", "--no-gl", "--json", str(out),
                     "--set", "env.scene.kind=room", "env.render.culling=false", "env.goals_per_scene=1"])
     rows = json.loads(out.read_text())
     assert [r["backend"] for r in rows] == ["raycast", "mjx"]
-    for r in rows:
-        assert r["batch"] == 2 and r["resolution"] == 16 and r["frames_per_s"] > 0 and r["cores"] > 0
+    for r in rows:  # each clock reads one second later than the last: every interval is 1 s
+        assert r["batch"] == 2 and r["resolution"] == 16
+        assert r["frames_per_s"] == 2 * 2 and r["cores"] == 1.0 and r["compile_s"] == 1.0
     assert "backend" in capsys.readouterr().out
 
 

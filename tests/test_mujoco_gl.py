@@ -1,6 +1,7 @@
 """Tests for the MuJoCo OpenGL reference renderer (a2catvn_jax.bench.mujoco_gl)."""
 
 import os
+import types
 
 import numpy as np
 import pytest
@@ -143,7 +144,9 @@ def test_agrees_with_mj_ray(renderer, pose):
     )
 
 
-def test_benchmark_fps_runs():
+def test_benchmark_fps_runs(monkeypatch):
     poses = np.array([[0.0, 0.0, 0.0, 0.0], [0.3, -0.2, 1.0, 0.1]])
+    clock = iter([10.0, 12.0])  # the 4 timed frames take 2 s
+    monkeypatch.setattr(mgl, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
     fps = mgl.benchmark_fps(SCENE, 16, 16, n_frames=4, poses=poses, cam_height=1.0, warmup=1)
-    assert fps > 0
+    assert fps == 2.0

@@ -141,10 +141,7 @@ def test_train_benchmark_at_several_batch_sizes(monkeypatch, capsys, tmp_path):
         return [0] * len(commands)
 
     monkeypatch.setattr(workers, "run_pool", pool)
-    # A clock that moves one second per reading: every timed interval is 1 s, so the rates
-    # are exactly the work of one interval.
-    clock = itertools.count()
-    monkeypatch.setattr(throughput, "time", types.SimpleNamespace(perf_counter=lambda: float(next(clock))))
+    _one_second_per_reading(monkeypatch)  # the rates are exactly the work of one interval
     tiny = TINY_LEARNER + ["env.scene.num_scenes=1"] + ONLY_DEPTH
     out = tmp_path / "rows.json"
     benchmark.main(["train", "--configs", "quickstart", "--updates", "1", "--batch-sizes", "4", "6", "--json", str(out),
@@ -231,8 +228,7 @@ def test_network_benchmark_times_each_pass_and_the_stream_layers(capsys, tmp_pat
 def test_compile_benchmark_times_the_compile_alone_at_each_batch(monkeypatch, capsys, tmp_path):
     """`benchmark compile`: the update compiled on the abstract state at each batch (nothing
     run); the program is the same size at both batches, and XLA's buffers grow with B."""
-    clock = itertools.count()
-    monkeypatch.setattr(throughput, "time", types.SimpleNamespace(perf_counter=lambda: float(next(clock))))
+    _one_second_per_reading(monkeypatch)
     out = tmp_path / "rows.json"
     benchmark.main(["compile", "--configs", "quickstart", "--batch-sizes", "4", "16", "--json", str(out),
                     "--set", *TINY_LEARNER, "env.scene.num_scenes=1", *ONLY_DEPTH])

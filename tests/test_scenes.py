@@ -33,6 +33,7 @@ from a2catvn_jax.env.scenes import (  # noqa: E402
     scene_to_mjcf,
     single_room,
 )
+from a2catvn_jax.env.scenes.spec import CLASS_ID, class_colors  # noqa: E402
 from a2catvn_jax.run.topdown import save_topdown  # noqa: E402
 
 TYPE_RANK = {
@@ -393,5 +394,18 @@ def test_class_from_name():
 
 
 def test_plot_topdown(tmp_path, houses):
-    out = save_topdown(houses[0], str(tmp_path / "top.png"), dpi=40)
-    assert Path(out).stat().st_size > 1000
+    """The drawing shows the classes of the house in their class colours (the floor a third
+    of the picture or more, the walls, most furniture) and never the ceiling."""
+    from matplotlib.image import imread
+
+    out = save_topdown(houses[0], str(tmp_path / "top.png"), color_by="class", dpi=40)
+    pixels = np.round(imread(out)[..., :3] * 255).astype(int)
+    table = class_colors()
+
+    def share(cls):
+        return float(np.mean(np.all(pixels == table[CLASS_ID[cls]], axis=-1)))
+
+    assert share("floor") > 0.3 and share("wall") > 0.003
+    assert share("ceiling") == 0.0
+    drawn = {g.cls for g in houses[0].geoms if g.cls not in ("ceiling", "floor", "wall")}
+    assert sum(share(c) > 0 for c in drawn) >= len(drawn) // 2  # small furniture may hide under labels
