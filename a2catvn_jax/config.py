@@ -293,7 +293,8 @@ class TrainConfig(Section):
     gamma: Fraction = 0.99
     learning_rate: Positive = 7e-4
     lr_schedule: Literal["linear", "constant"] = "linear"  # linear: lr * (f_max - f) / f_max
-    lr_scaling: Literal["none", "linear", "sqrt"] = "none"  # learning_rate times B / 16 or sqrt(B / 16) (B: env.num_envs)
+    lr_scaling: Literal["none", "linear", "sqrt"] = "none"  # learning_rate times b / 16 or sqrt(b / 16) (b: env.num_envs / minibatches, the environments of one gradient step)
+    minibatches: Count = 1  # gradient steps per rollout, each on 1 / minibatches of the environments (every minibatches-th one); 1: the paper's one step
     lr_warmup_frames: Annotated[int, Strict(), Field(ge=0)] = 0  # the learning rate rises linearly from 0 over these frames, then follows lr_schedule
     optimizer: Literal["rmsprop", "adam", "lamb"] = "rmsprop"  # after the clip: RMSprop (paper), Adam or LAMB
     rmsprop_decay: Fraction = 0.99  # RMSprop alpha
@@ -373,6 +374,9 @@ class Config(Section):
                                            f"({k('env.render.image_size')})")
         yield from self.agent._image_checks(lambda key: k(f"agent.{key}"), size, self.train.aux_downsize,
                                             k("env.render.image_size"), k("train.aux_downsize"))
+        if self.env.num_envs % self.train.minibatches:
+            yield k("train.minibatches"), (f"{self.train.minibatches} does not divide {k('env.num_envs')} = "
+                                           f"{self.env.num_envs}: each gradient step takes an equal share")
 
 
 

@@ -102,6 +102,15 @@ TWO_DEVICES = textwrap.dedent(
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-4, atol=2e-6)
     np.testing.assert_allclose(np.asarray(split.env_state.info.pose), np.asarray(whole.env_state.info.pose),
                                rtol=1e-4, atol=1e-5)
+    # Two gradient steps per rollout, each on every other environment: both devices hold a
+    # share of each step's environments, and the result is still one device's.
+    halves = load_config(None, TINY_SYNTHETIC + ["env.num_envs=8", "train.minibatches=2", "train.log_every=2"])
+    quiet = lambda *_: None  # noqa: E731
+    _, split, _ = train(halves, tmp + "/halves_split", max_updates=2, progress=False, log=quiet)
+    _, whole, _ = train(halves, tmp + "/halves_whole", max_updates=2, progress=False, log=quiet, devices=1)
+    for a, b in zip(jax.tree_util.tree_leaves(jax.device_get(split.params)),
+                    jax.tree_util.tree_leaves(jax.device_get(whole.params))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-4, atol=2e-6)
     # The sharded run resumes from its checkpoint on the devices it ran on.
     _, resumed, _ = train(cfg, tmp + "/split", resume=True, max_updates=2, progress=False, log=lambda *_: None)
     assert int(resumed.update) == 6 and len(resumed.env_state.obs.rgb.addressable_shards) == 2
@@ -150,6 +159,49 @@ def test_learning_rate_warms_up_then_follows_its_schedule():
     np.testing.assert_allclose([float(warm(n)) for n in range(8)], want, rtol=1e-6)
     with pytest.raises(ConfigError, match="lr_warmup_frames"):
         load_config(None, ["train.lr_warmup_frames=-1"])
+
+
+def test_minibatches_take_one_step_per_share_of_the_environments():
+    """`train.minibatches=2` on 4 environments: the update collects one rollout of all 4,
+    then takes two gradient steps in turn, the first on environments 0 and 2, the second
+    on 1 and 3 from the first's parameters, each with its own loss key and the schedule
+    counting steps; the same steps taken by hand give the same parameters."""
+    import optax
+
+    from a2catvn_jax.agent import update as update_lib
+    from a2catvn_jax.agent.networks import make_networks
+    from a2catvn_jax.env import make_env
+
+    cfg = load_config(None, TINY_SYNTHETIC + ["train.minibatches=2", "train.total_frames=160"])  # 10 updates, 20 steps
+    env = make_env(cfg.env)
+    networks = make_networks(cfg, env.num_actions)
+    init, update = update_lib.make_update(env, networks, cfg)
+    state = jax.device_get(init(jax.random.PRNGKey(0)))
+    state = state.replace(update=np.int32(3))  # the 4th update: gradient steps 6 and 7
+    new, metrics = update(jax.device_put(state))
+
+    spec = update_lib.learner(cfg)
+    targets = update_lib.targets_of(spec, env)
+    batch = update_lib.collect(spec, env, networks, targets, jax.device_put(state))
+    parts = update_lib.minibatches(2, batch.traj, batch.truth, batch.carry0)
+    np.testing.assert_array_equal(parts[0].action[1], np.asarray(batch.traj.action)[:, 1::2])
+    np.testing.assert_array_equal(parts[0].rgb[0], np.asarray(batch.traj.rgb)[:, 0::2])
+    optimizer = update_lib.make_optimizer(cfg)
+    grad = jax.grad(lambda p, *a: update_lib.loss(spec, networks, targets, p, *a)[0])
+    params, opt_state = state.params, state.opt_state
+    for m, key in enumerate(jax.random.split(batch.loss_key, 2)):
+        share = jax.tree_util.tree_map(lambda x: x[m], parts)
+        g = grad(params, *share, batch.replay, key)
+        step, opt_state = optimizer.update(g, opt_state, params)
+        params = optax.apply_updates(params, step)
+    for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(new.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+    # The rate of step 6 of 20 under the linear decay; lr_scaling counts the 2 environments of a step.
+    assert float(metrics["learning_rate"]) == pytest.approx(7e-4 * (20 - 6) / 20)
+    scaled = load_config(None, ["env.num_envs=256", "train.minibatches=4", "train.lr_scaling=linear"])
+    assert update_lib.learning_rate(scaled) == pytest.approx(7e-4 * 4)
+    with pytest.raises(ConfigError, match=r"train.minibatches: 3 does not divide env.num_envs = 4"):
+        load_config(None, TINY_SYNTHETIC + ["train.minibatches=3"])
 
 
 @pytest.mark.parametrize("optimizer", ["rmsprop", "adam", "lamb"])

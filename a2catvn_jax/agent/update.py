@@ -74,23 +74,25 @@ REFERENCE_ENVS = 16  # `train.lr_scaling` scales the learning rate relative to t
 
 
 def learning_rate(cfg: Config) -> float:
-    """`train.learning_rate`, scaled with the batch (`train.lr_scaling`): times B / 16
-    (linear) or sqrt(B / 16) (sqrt), B the environments of the whole run."""
+    """`train.learning_rate`, scaled with the batch (`train.lr_scaling`): times b / 16
+    (linear) or sqrt(b / 16) (sqrt), b the environments of one gradient step (all of
+    the run's, or their share with `train.minibatches`)."""
     tc = cfg.train
-    ratio = cfg.env.num_envs / REFERENCE_ENVS
+    ratio = cfg.env.num_envs / tc.minibatches / REFERENCE_ENVS
     return tc.learning_rate * {"none": 1.0, "linear": ratio, "sqrt": math.sqrt(ratio)}[tc.lr_scaling]
 
 
 def learning_rate_schedule(cfg: Config) -> optax.Schedule:
-    """lr * (f_max - f) / f_max (paper), or a constant; lr scaled by `learning_rate`;
-    with `train.lr_warmup_frames` W, times min(1, (n + 1) / ceil(W / frames per update))
-    at update n (a linear warm-up, for large batches)."""
-    lr = learning_rate(cfg)
+    """The rate at gradient step n (`train.minibatches` steps per update): lr * (f_max -
+    f) / f_max (paper), or a constant; lr scaled by `learning_rate`; with
+    `train.lr_warmup_frames` W, times min(1, (n + 1) / ceil(W / frames per step)) (a
+    linear warm-up, for large batches)."""
+    lr, steps = learning_rate(cfg), cfg.train.minibatches
     if cfg.train.lr_schedule == "linear":
-        base = optax.linear_schedule(lr, 0.0, total_updates(cfg))
+        base = optax.linear_schedule(lr, 0.0, total_updates(cfg) * steps)
     else:
         base = optax.constant_schedule(lr)
-    warmup = -(-cfg.train.lr_warmup_frames // frames_per_update(cfg))
+    warmup = -(-cfg.train.lr_warmup_frames * steps // frames_per_update(cfg))
     if warmup <= 1:
         return base
     return lambda n: base(n) * jnp.minimum(1.0, (n + 1) / warmup)
@@ -117,6 +119,7 @@ class Learner:
     rollout_length: int
     image_size: int
     frames_per_update: int
+    minibatches: int  # gradient steps per rollout, each on an equal share of the environments
     gamma: float
     weights: tuple[tuple[str, float], ...]  # (loss term, weight) of every term with a non-zero weight
     vn_heads: tuple[str, ...]  # the depth / segmentation heads whose loss is on
@@ -146,7 +149,7 @@ def learner(cfg: Config) -> Learner:
     colors = segmentation_colors(cfg)
     return Learner(
         rollout_length=tc.rollout_length, image_size=cfg.env.render.image_size,
-        frames_per_update=frames_per_update(cfg), gamma=tc.gamma,
+        frames_per_update=frames_per_update(cfg), minibatches=tc.minibatches, gamma=tc.gamma,
         weights=tuple((f.name, getattr(w, f.name)) for f in dataclasses.fields(w) if getattr(w, f.name) > 0),
         vn_heads=vn_heads_on(cfg), replay=uses_replay(cfg), timeout_bootstrap=tc.timeout_bootstrap,
         colors=None if colors is None else tuple(map(tuple, colors.tolist())),
@@ -394,6 +397,19 @@ def make_grad_norms(env, networks: Networks, cfg: Config) -> Callable:
     return jax.jit(grad_norms)
 
 
+def minibatches(n: int, traj: Transition, truth: FrameTruth, carry0):
+    """(traj, truth, carry0) split into `n` shares of the environments, stacked on a new
+    leading axis: share m holds environments m, m + n, m + 2n, ... (a strided split, so
+    that environments split over devices in contiguous blocks stay balanced)."""
+
+    def split(x, axis):
+        shape = x.shape[:axis] + (x.shape[axis] // n, n) + x.shape[axis + 1:]
+        return jnp.moveaxis(x.reshape(shape), axis + 1, 0)
+
+    time_major = lambda tree: jax.tree_util.tree_map(lambda x: split(x, 1), tree)  # noqa: E731
+    return time_major(traj), time_major(truth), jax.tree_util.tree_map(lambda x: split(x, 0), carry0)
+
+
 class UpdateFns(NamedTuple):
     """`init(key, params=None) -> TrainState` (fresh parameters unless given) and the
     jitted `update(TrainState) -> (TrainState, metrics)` (its argument is donated)."""
@@ -424,17 +440,32 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
             ts = warmup(spec, warmup_steps, env, networks, targets, ts)
         return ts
 
+    grad_fn = jax.value_and_grad(functools.partial(loss, spec, networks, targets), has_aux=True)
+
+    def step(params, opt_state, traj, truth, carry0, replay, key):
+        (total, terms), grads = grad_fn(params, traj, truth, carry0, replay, key)
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        metrics = {**{f"loss/{k}": v for k, v in terms.items()}, "loss/total": total, "grad_norm": optax.tree.norm(grads)}
+        return optax.apply_updates(params, updates), opt_state, metrics
+
     def update(ts: TrainState):
         batch = collect(spec, env, networks, targets, ts)
-        grad_fn = jax.value_and_grad(functools.partial(loss, spec, networks, targets), has_aux=True)
-        (total, terms), grads = grad_fn(ts.params, *batch.loss_args)
-        updates, opt_state = optimizer.update(grads, ts.opt_state, ts.params)
-        params = optax.apply_updates(ts.params, updates)
-        metrics = {f"loss/{k}": v for k, v in terms.items()}
+        if spec.minibatches == 1:
+            params, opt_state, metrics = step(ts.params, ts.opt_state, *batch.loss_args)
+        else:  # one step per share of the environments, in turn, each from the last one's parameters
+            parts = minibatches(spec.minibatches, batch.traj, batch.truth, batch.carry0)
+
+            def one(carry, part):
+                params, opt_state = carry
+                (traj, truth, carry0), key = part
+                params, opt_state, metrics = step(params, opt_state, traj, truth, carry0, batch.replay, key)
+                return (params, opt_state), metrics
+
+            keys = jax.random.split(batch.loss_key, spec.minibatches)
+            (params, opt_state), metrics = jax.lax.scan(one, (ts.params, ts.opt_state), (parts, keys))
+            metrics = jax.tree_util.tree_map(lambda m: jnp.mean(m, axis=0), metrics)
         metrics.update({
-            "loss/total": total,
-            "grad_norm": optax.tree.norm(grads),
-            "learning_rate": schedule(ts.update),
+            "learning_rate": schedule(ts.update * spec.minibatches),
             "complexity": batch.complexity,
             **batch.stats,
         })
