@@ -162,6 +162,11 @@ def test_statistics():
     curve = {"frames": np.array([10.0, 20.0, 30.0]), "success_rate": np.array([0.2, 0.75, 0.6])}
     assert stats.frames_to_threshold(curve, 0.7) == 20.0
     assert stats.frames_to_threshold(curve, 0.8) is None
+    # Only where the running mean is over a full window: 1.0 at the first row, alone, does not count.
+    rows = [{"frames": 10.0 * (i + 1), "success_rate": x} for i, x in enumerate([1.0] + [0.1] * 36 + [0.9] * 3)]
+    early = stats.curves(rows)  # 40 rows: a window of 4
+    assert early["window"] == 4 and early["success_rate"][0] == 1.0 and early["success_rate"][1] == 0.55
+    assert stats.frames_to_threshold(early, 0.5) == 390.0  # (0.1 + 0.1 + 0.9 + 0.9) / 4 at row 38
     # 20 rows: the last 10% is rows 18-19, the 10% before it rows 16-17; None and NaN rows left out
     rows = [{"success_rate": 0.1}] * 16 + [{"success_rate": 0.4}, {"success_rate": 0.6},
                                            {"success_rate": 0.7}, {"success_rate": None}]

@@ -182,18 +182,23 @@ def _number(value) -> float:
 
 
 def curves(rows: list[dict]) -> dict:
-    """frames, and the smoothed success rate, episode length and SPL of a training log."""
+    """frames, and the smoothed success rate, episode length and SPL of a training log;
+    "window": the rows each running mean is over (the first window - 1 rows average fewer)."""
     k = max(1, round(SMOOTH_FRACTION * len(rows)))
     frames = np.array([r["frames"] for r in rows], float)
-    out = {"frames": frames}
+    out = {"frames": frames, "window": k}
     for key in ("success_rate", "episode_length", "spl"):
         out[key] = smooth(np.array([_number(r.get(key)) for r in rows], float), k)
     return out
 
 
 def frames_to_threshold(curve: dict, threshold: float) -> Optional[float]:
-    """The first logged frame count at which the smoothed success rate reaches `threshold`."""
-    hit = np.nonzero(curve["success_rate"] >= threshold)[0]
+    """The first logged frame count at which the smoothed success rate, averaged over a
+    full window of rows, reaches `threshold`. (The first rows of a run count only the
+    few episodes that ended near their start, at the curriculum's easiest: a run logged
+    often could otherwise "reach" the threshold at its first row.)"""
+    full = np.arange(len(curve["frames"])) >= curve.get("window", 1) - 1
+    hit = np.nonzero(full & (curve["success_rate"] >= threshold))[0]
     return float(curve["frames"][hit[0]]) if hit.size else None
 
 
