@@ -97,6 +97,16 @@ def sample_sequences(replay: Replay, key, n: int):
     return seqs, carry
 
 
+def uniform_among(key, mask, n: int):
+    """[n] flat indices of `mask`, each drawn uniformly among its True entries (index 0
+    when there are none). By the inverse of the count of True entries: O(N + n log N)
+    for N entries, where drawing from a categorical costs n x N random numbers (at B 256
+    with 5-step rollouts, N is 100k windows)."""
+    counts = jnp.cumsum(mask.reshape(-1).astype(jnp.int32))
+    k = jax.random.randint(key, (n,), 0, jnp.maximum(counts[-1], 1))
+    return jnp.where(counts[-1] > 0, jnp.searchsorted(counts, k, side="right"), 0).astype(jnp.int32)
+
+
 def sample_reward_windows(replay: Replay, key, n: int, frames: int, reward, reset, zero_fraction: float = 0.5):
     """n windows of `frames` consecutive steps of one environment inside one episode.
 
@@ -119,8 +129,7 @@ def sample_reward_windows(replay: Replay, key, n: int, frames: int, reward, rese
     zero = ok & (reward == 0)
     k_kind, k_nz, k_z = jax.random.split(key, 3)
     want_nonzero = jax.random.bernoulli(k_kind, 1.0 - zero_fraction, (n,)) & jnp.any(nonzero)
-    pick = lambda k, m: jax.random.categorical(k, jnp.where(m.reshape(-1), 0.0, -jnp.inf), shape=(n,))  # noqa: E731
-    idx = jnp.where(want_nonzero, pick(k_nz, nonzero), pick(k_z, jnp.where(jnp.any(zero), zero, ok)))
+    idx = jnp.where(want_nonzero, uniform_among(k_nz, nonzero, n), uniform_among(k_z, jnp.where(jnp.any(zero), zero, ok), n))
     slot, step, env = idx // (T * B), (idx // B) % T, idx % B
     window = step[:, None] + jnp.arange(1 - frames, 1)[None, :]  # [n, frames]
     out = jax.tree_util.tree_map(lambda x: x[slot[:, None], window, env[:, None]], replay.data)
