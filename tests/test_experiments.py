@@ -70,6 +70,14 @@ def test_the_authors_variants_are_the_preset_and_the_documented_settings():
     assert len(labels) == 4
 
 
+def test_the_large_batch_preset_is_the_batch_experiments_recipe():
+    """configs/presets/large_batch.yaml holds what the batch experiment's "B 64, 5-step
+    rollouts, clip 40" trains, so the preset is the configuration the evidence is for."""
+    base = CONFIGS / "image_goals_cpu.yaml"
+    (recipe,) = [v for v in EXPERIMENTS["batch"].variants if v.label == "B 64, 5-step rollouts, clip 40"]
+    assert load_config(base, recipe.overrides) == load_config([base, CONFIGS / "presets" / "large_batch.yaml"])
+
+
 def test_learning_by_sight_experiments():
     aux, ablations, gen = (EXPERIMENTS[n] for n in ("aux", "ablations", "generalisation"))
     assert [v.label for v in aux.variants] == ["A2CAT-VN (pre-trained)", "A2CAT-VN", "A2C+UNREAL", "A2C",
