@@ -2,10 +2,11 @@
 info and replayed rollouts as dicts with one `done` flag) resumes under the current one.
 
 tests/data/format1_run holds such a run of the tiny learner after 3 updates, and the
-parameters the code that wrote it reached after 5. Resumed for 2 more updates, it
-reaches the same parameters to float32 rounding (the tests compile with other XLA
-options than the code that wrote them; no episode ends in those updates, so the new
-time-out handling plays no part).
+parameters it reaches after 5. Resumed for 2 more updates, it reaches the same
+parameters to float32 rounding (no episode ends in those updates, so the new time-out
+handling plays no part). The reference was written by the code that wrote the run,
+and written again when the update's sampling of reward-prediction windows changed
+(same distribution, other draws): by the current code resumed from the same files.
 """
 
 from __future__ import annotations

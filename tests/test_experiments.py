@@ -609,8 +609,8 @@ def test_plan_prints_one_self_contained_command_per_unfinished_run(tmp_path, cap
 def test_the_navigation_experiment_has_the_target_and_observation_blind_controls():
     nav = EXPERIMENTS["navigation"]
     assert [v.label for v in nav.variants] == [
-        "A2CAT-VN", "A2CAT-VN, clip 40", "A2CAT-VN without reward prediction", "blind A2CAT-VN",
-        "target-blind A2CAT-VN", "observation-blind A2CAT-VN"]
+        "A2CAT-VN", "A2CAT-VN, clip 40", "A2CAT-VN without reward prediction", "A2CAT-VN, clip 40, 256 houses",
+        "blind A2CAT-VN", "target-blind A2CAT-VN", "observation-blind A2CAT-VN"]
     runs = {r.variant.label: r for r in st.plan(nav, "cpu", [0], "/r")}
     assert runs["target-blind A2CAT-VN"].cfg.agent.blind == "target"
     assert runs["observation-blind A2CAT-VN"].cfg.agent.blind == "observation"
