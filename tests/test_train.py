@@ -137,6 +137,11 @@ def test_silenced_reports_are_only_those_of_abandoned_orbax_reads():
     assert sum(type(f).__name__ == "_AbandonedOrbaxTasks" for f in log.filters) == 1
     assert not log.filter(task_record("/site-packages/orbax/checkpoint/_src/serialization/serialization.py"))
     assert log.filter(task_record("/site-packages/somelib/io.py"))
+    # A task whose traceback has no orbax frame, but whose repr names the file of orbax's coroutine.
+    orbax_task = ("Task exception was never retrieved\nfuture: <Task finished name='Task-9' coro=<read() done, "
+                  "defined at /site-packages/orbax/checkpoint/_src/serialization/tensorstore_utils.py:40> "
+                  "exception=ValueError('corrupt')>")
+    assert not log.filter(logging.LogRecord("asyncio", logging.ERROR, __file__, 1, orbax_task, None, None))
     assert log.filter(logging.LogRecord("asyncio", logging.ERROR, __file__, 1, "Unclosed event loop", None, None))
 
 

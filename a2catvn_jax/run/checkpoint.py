@@ -465,12 +465,16 @@ def silence_abandoned_reads() -> None:
 
 
 class _AbandonedOrbaxTasks:
-    """A logging filter: drops "Task (or Future) exception was never retrieved" records of orbax tasks."""
+    """A logging filter: drops "Task (or Future) exception was never retrieved" records of
+    orbax tasks: those whose traceback passes through orbax, or whose task (its repr, in
+    the message, names the file its coroutine is defined in) is orbax's or tensorstore's."""
 
     def filter(self, record) -> bool:
         message = record.getMessage()
         if not message.startswith(("Task exception was never retrieved", "Future exception was never retrieved")):
             return True
+        if "orbax" in message or "tensorstore" in message:
+            return False
         return not (record.exc_info and _through_orbax(record.exc_info[2]))
 
 
