@@ -462,7 +462,10 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
                 return (params, opt_state), metrics
 
             keys = jax.random.split(batch.loss_key, spec.minibatches)
-            (params, opt_state), metrics = jax.lax.scan(one, (ts.params, ts.opt_state), (parts, keys))
+            # Written out M times, not a loop: XLA's CPU backend runs the convolutions' weight
+            # gradients inside a `while` loop several times slower (docs/benchmarks.md,
+            # "Minibatches"); M is small, so the compile grows little.
+            (params, opt_state), metrics = jax.lax.scan(one, (ts.params, ts.opt_state), (parts, keys), unroll=True)
             metrics = jax.tree_util.tree_map(lambda m: jnp.mean(m, axis=0), metrics)
         metrics.update({
             "learning_rate": schedule(ts.update * spec.minibatches),
