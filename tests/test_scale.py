@@ -161,11 +161,12 @@ def test_learning_rate_warms_up_then_follows_its_schedule():
         load_config(None, ["train.lr_warmup_frames=-1"])
 
 
-def test_minibatches_take_one_step_per_share_of_the_environments():
+def test_minibatches_take_one_step_per_share_of_the_environments(monkeypatch):
     """`train.minibatches=2` on 4 environments: the update collects one rollout of all 4,
     then takes two gradient steps in turn, the first on environments 0 and 2, the second
     on 1 and 3 from the first's parameters, each with its own loss key and the schedule
-    counting steps; the same steps taken by hand give the same parameters."""
+    counting steps; the same steps taken by hand give the same parameters, with the
+    steps written out in the program (the CPU's choice) and in a loop (elsewhere)."""
     import optax
 
     from a2catvn_jax.agent import update as update_lib
@@ -175,27 +176,34 @@ def test_minibatches_take_one_step_per_share_of_the_environments():
     cfg = load_config(None, TINY_SYNTHETIC + ["train.minibatches=2", "train.total_frames=160"])  # 10 updates, 20 steps
     env = make_env(cfg.env)
     networks = make_networks(cfg, env.num_actions)
-    init, update = update_lib.make_update(env, networks, cfg)
-    state = jax.device_get(init(jax.random.PRNGKey(0)))
-    state = state.replace(update=np.int32(3))  # the 4th update: gradient steps 6 and 7
-    new, metrics = update(jax.device_put(state))
+    assert update_lib.steps_written_out() == (jax.default_backend() == "cpu")
+    results = {}
+    for written_out in (True, False):
+        monkeypatch.setattr(update_lib, "steps_written_out", lambda: written_out)
+        init, update = update_lib.make_update(env, networks, cfg)
+        state = jax.device_get(init(jax.random.PRNGKey(0)))
+        state = state.replace(update=np.int32(3))  # the 4th update: gradient steps 6 and 7
+        results[written_out] = update(jax.device_put(state))
+    new, metrics = results[True]
 
     spec = update_lib.learner(cfg)
     targets = update_lib.targets_of(spec, env)
-    batch = update_lib.collect(spec, env, networks, targets, jax.device_put(state))
+    batch = jax.jit(lambda s: update_lib.collect(spec, env, networks, targets, s))(jax.device_put(state))
     parts = update_lib.minibatches(2, batch.traj, batch.truth, batch.carry0)
     np.testing.assert_array_equal(parts[0].action[1], np.asarray(batch.traj.action)[:, 1::2])
     np.testing.assert_array_equal(parts[0].rgb[0], np.asarray(batch.traj.rgb)[:, 0::2])
     optimizer = update_lib.make_optimizer(cfg)
-    grad = jax.grad(lambda p, *a: update_lib.loss(spec, networks, targets, p, *a)[0])
+    grad = jax.jit(jax.grad(lambda p, *a: update_lib.loss(spec, networks, targets, p, *a)[0]))  # compiled once, for both steps
     params, opt_state = state.params, state.opt_state
     for m, key in enumerate(jax.random.split(batch.loss_key, 2)):
         share = jax.tree_util.tree_map(lambda x: x[m], parts)
         g = grad(params, *share, batch.replay, key)
         step, opt_state = optimizer.update(g, opt_state, params)
         params = optax.apply_updates(params, step)
-    for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(new.params)):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+    for written_out, (got, _) in results.items():
+        for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(got.params)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6,
+                                       err_msg=f"steps written out: {written_out}")
     # The rate of step 6 of 20 under the linear decay; lr_scaling counts the 2 environments of a step.
     assert float(metrics["learning_rate"]) == pytest.approx(7e-4 * (20 - 6) / 20)
     scaled = load_config(None, ["env.num_envs=256", "train.minibatches=4", "train.lr_scaling=linear"])

@@ -410,6 +410,14 @@ def minibatches(n: int, traj: Transition, truth: FrameTruth, carry0):
     return time_major(traj), time_major(truth), jax.tree_util.tree_map(lambda x: split(x, 0), carry0)
 
 
+def steps_written_out() -> bool:
+    """Whether an update writes its `train.minibatches` steps out one after another in its
+    program (on the CPU) rather than looping over them (elsewhere, where the compile
+    would grow with M). XLA's CPU backend runs the convolutions' weight gradients
+    several times slower inside a loop (docs/benchmarks.md, "Minibatches")."""
+    return jax.default_backend() == "cpu"
+
+
 class UpdateFns(NamedTuple):
     """`init(key, params=None) -> TrainState` (fresh parameters unless given) and the
     jitted `update(TrainState) -> (TrainState, metrics)` (its argument is donated)."""
@@ -462,10 +470,8 @@ def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
                 return (params, opt_state), metrics
 
             keys = jax.random.split(batch.loss_key, spec.minibatches)
-            # Written out M times, not a loop: XLA's CPU backend runs the convolutions' weight
-            # gradients inside a `while` loop several times slower (docs/benchmarks.md,
-            # "Minibatches"); M is small, so the compile grows little.
-            (params, opt_state), metrics = jax.lax.scan(one, (ts.params, ts.opt_state), (parts, keys), unroll=True)
+            (params, opt_state), metrics = jax.lax.scan(one, (ts.params, ts.opt_state), (parts, keys),
+                                                        unroll=steps_written_out())
             metrics = jax.tree_util.tree_map(lambda m: jnp.mean(m, axis=0), metrics)
         metrics.update({
             "learning_rate": schedule(ts.update * spec.minibatches),
