@@ -6,10 +6,11 @@
 #   2. training frames/s and memory of the paper-sized configuration at 32 px,
 #      B 256 .. 4096 (one process per size);
 #   3. the profile of one update at B 1024;
-#   4. the update loop at B 1024 with the large-batch candidate (sqrt-scaled learning
-#      rate, clip 40): one update per call against 10 per call in the device loop;
+#   4. the update loop at B 1024 with the large-batch recipe (configs/presets/large_batch.yaml:
+#      5-step rollouts, clip 40, and here one gradient step per 64 environments,
+#      train.minibatches = B / 64): one update per call against 10 per call in the device loop;
 #   5. a training run of the command line on every device of the machine at B 4096 with
-#      the same candidate (image_goals_cpu, 30 updates): its log (frames/s, compile,
+#      the same recipe (image_goals_cpu, 30 updates): its log (frames/s, compile,
 #      memory) and metrics.
 # Results go to OUT (default: gpu_results/) as JSON and text, with the device's name.
 #
@@ -30,6 +31,9 @@ else
   tiny=()
 fi
 "$python" -c "import jax; print(jax.devices())" | tee "$out/device.txt"
+steps_of() {  # the large-batch recipe's gradient steps per rollout at B environments: one per 64
+  echo $(( $1 >= 64 ? $1 / 64 : 1 ))
+}
 step() {  # step NAME SECONDS COMMAND...: run one step, its output in OUT/NAME.txt
   local name=$1 seconds=$2
   shift 2
@@ -45,7 +49,9 @@ step profile "${limits[2]}" "$python" -m a2catvn_jax.benchmark profile --configs
   --updates 2 --json "$out/profile.json" --set env.num_envs=$profile_b "${tiny[@]:1}"
 step loop "${limits[3]}" "$python" -m a2catvn_jax.benchmark loop --configs paper --paper-resolution 32 \
   --updates 10 --per-call 10 --repeats 2 --json "$out/loop.json" \
-  --set env.num_envs=$profile_b train.lr_scaling=sqrt train.max_grad_norm=40 "${tiny[@]:1}"
-step run "${limits[4]}" "$python" -m a2catvn_jax.train --config configs/image_goals_cpu.yaml --workdir "$out/run" \
-  --updates 30 --no-progress --set env.num_envs=$run_b train.lr_scaling=sqrt train.max_grad_norm=40 \
-  train.log_every=5 train.checkpoint_every=30 "${tiny[@]:1}"
+  --set env.num_envs=$profile_b train.rollout_length=5 train.max_grad_norm=40 \
+  train.minibatches=$(steps_of $profile_b) "${tiny[@]:1}"
+step run "${limits[4]}" "$python" -m a2catvn_jax.train --config configs/image_goals_cpu.yaml \
+  configs/presets/large_batch.yaml --workdir "$out/run" --updates 30 --no-progress \
+  --set env.num_envs=$run_b train.minibatches=$(steps_of $run_b) train.log_every=5 train.checkpoint_every=30 \
+  "${tiny[@]:1}"
