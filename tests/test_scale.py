@@ -177,12 +177,13 @@ def test_minibatches_take_one_step_per_share_of_the_environments(monkeypatch):
     env = make_env(cfg.env)
     networks = make_networks(cfg, env.num_actions)
     assert update_lib.steps_written_out() == (jax.default_backend() == "cpu")
+    init, _ = update_lib.make_update(env, networks, cfg)  # the initial state does not depend on the steps' form
+    state = jax.device_get(init(jax.random.PRNGKey(0)))
+    state = state.replace(update=np.int32(3))  # the 4th update: gradient steps 6 and 7
     results = {}
     for written_out in (True, False):
-        monkeypatch.setattr(update_lib, "steps_written_out", lambda: written_out)
-        init, update = update_lib.make_update(env, networks, cfg)
-        state = jax.device_get(init(jax.random.PRNGKey(0)))
-        state = state.replace(update=np.int32(3))  # the 4th update: gradient steps 6 and 7
+        monkeypatch.setattr(update_lib, "steps_written_out", lambda w=written_out: w)
+        _, update = update_lib.make_update(env, networks, cfg)
         results[written_out] = update(jax.device_put(state))
     new, metrics = results[True]
 
