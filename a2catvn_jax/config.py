@@ -49,6 +49,7 @@ __all__ = [
     "EnvConfig",
     "AgentConfig",
     "LossWeights",
+    "EvalConfig",
     "TrainConfig",
     "PretrainConfig",
     "Config",
@@ -62,6 +63,8 @@ __all__ = [
     "MIN_IMAGE_SIZE",
     "MIN_ROOM_SIDE",
     "RP_FRAMES",
+    "HOUSES",
+    "AGENT_POLICIES",
 ]
 
 
@@ -70,6 +73,8 @@ MIN_IMAGE_SIZE = 16  # smallest env.render.image_size the network takes
 RP_FRAMES = 3  # consecutive frames seen by the reward-prediction head (agent.networks)
 MIN_ROOM_SIDE = 1.5  # metres: the smallest room side a generated house may have (env.scene.room_size)
 BODY_MARGIN = 0.1  # metres: the agent's body reaches this far above its camera (env.world)
+HOUSES = ("train", "held-out", "new-targets")  # the house sets an agent is evaluated in (run.restore)
+AGENT_POLICIES = ("sample", "greedy")  # how a trained agent acts in evaluation: sampled or argmax actions
 
 
 # ----------------------------------------------------------------------- leaf types
@@ -84,6 +89,10 @@ def _true_false(value: Any) -> Any:
 
 def _list_as_tuple(value: Any) -> Any:
     return tuple(value) if isinstance(value, list) else value
+
+
+def _one_or_list(value: Any) -> Any:
+    return (value,) if isinstance(value, str) else _list_as_tuple(value)
 
 
 T = TypeVar("T")
@@ -111,6 +120,8 @@ def _blind_mode(value: Any) -> Any:
 Blind = Annotated[Literal[BLIND_MODES], BeforeValidator(_blind_mode)]
 Pair = Annotated[tuple[T, T], Strict(), BeforeValidator(_list_as_tuple)]
 Quad = Annotated[tuple[T, T, T, T], Strict(), BeforeValidator(_list_as_tuple)]
+# A list of one or more choices (a single choice may be written alone).
+Choices = Annotated[tuple[T, ...], Strict(), BeforeValidator(_one_or_list), Field(min_length=1)]
 
 
 # ----------------------------------------------------------------------- the sections
@@ -285,6 +296,26 @@ class LossWeights(Section):
 
 
 @dataclass(frozen=True)
+class EvalConfig(Section):
+    """Evaluation during training: every `every` updates the agent's parameters of that
+    moment act in each house set with each policy, at complexity 1, for `episodes`
+    episodes drawn with `seed` (the same episodes each time), as `evaluate` would act
+    from a checkpoint of that update. Rows go to eval.jsonl / eval.csv / TensorBoard."""
+
+    every: Every = 0  # updates between evaluations (0: none)
+    episodes: Count = 100  # per house set and policy
+    houses: Choices[Literal[HOUSES]] = ("held-out",)
+    policies: Choices[Literal[AGENT_POLICIES]] = ("sample",)
+    seed: Seed = 1000  # evaluation episodes' seed
+
+    def _cross_checks(self, k):
+        for name in ("houses", "policies"):
+            values = getattr(self, name)
+            if len(set(values)) < len(values):
+                yield k(name), f"lists a value twice: {list(values)}"
+
+
+@dataclass(frozen=True)
 class TrainConfig(Section):
     """Batched A2C with off-policy critic and auxiliary tasks; optimiser; run bookkeeping."""
 
@@ -323,6 +354,7 @@ class TrainConfig(Section):
     updates_per_call: Every = 0  # updates one call runs in a device loop (0: 1 on the CPU, log_every on an accelerator)
     keep_checkpoints: Count = 3
     grad_norm_every: Every = 0  # log each loss term's gradient norm on the shared conv layers every N updates (0: off)
+    eval: EvalConfig = field(default_factory=EvalConfig)  # evaluation during training (off by default)
 
     def _cross_checks(self, k):
         if self.grad_norm_every % self.log_every:
@@ -374,6 +406,12 @@ class Config(Section):
                                            f"({k('env.render.image_size')})")
         yield from self.agent._image_checks(lambda key: k(f"agent.{key}"), size, self.train.aux_downsize,
                                             k("env.render.image_size"), k("train.aux_downsize"))
+        if self.train.eval.every and self.env.kind != "mujoco":
+            yield k("train.eval.every"), (f"evaluation during training needs the MuJoCo world of houses; "
+                                          f"{k('env.kind')} is {self.env.kind!r}")
+        elif self.train.eval.every and "held-out" in self.train.eval.houses and self.env.scene.kind == "mjcf":
+            yield k("train.eval.houses"), (f"held-out houses need generated scenes; {k('env.scene.kind')} is 'mjcf' "
+                                           f"(one fixed file)")
         if self.env.num_envs % self.train.minibatches:
             yield k("train.minibatches"), (f"{self.train.minibatches} does not divide {k('env.num_envs')} = "
                                            f"{self.env.num_envs}: each gradient step takes an equal share")

@@ -202,14 +202,19 @@ def _section_message(tp: Any, value: Any) -> str:
 
 
 def _list_message(tp: Any, value: Any) -> str:
-    """'expected a list of 2 integers, got ...' for the fixed-length tuple annotation `tp`."""
+    """'expected a list of 2 integers, got ...' for the tuple annotation `tp` (of a fixed
+    length, or `tuple[X, ...]`: one or more, 'expected a list of one or more of ...')."""
     args = get_args(_bare(tp))
-    kinds = {_bare(a) for a in args}
-    names = {int: "integers", float: "numbers", bool: "booleans", str: "strings"}
-    what = names.get(kinds.pop(), "values") if len(kinds) == 1 else "values"
+    if len(args) == 2 and args[1] is Ellipsis:
+        choices = get_args(_bare(args[0]))
+        count, what = "one or more", ("of " + ", ".join(map(repr, choices)) if choices else "values")
+    else:
+        kinds = {_bare(a) for a in args}
+        names = {int: "integers", float: "numbers", bool: "booleans", str: "strings"}
+        count, what = len(args), names.get(kinds.pop(), "values") if len(kinds) == 1 else "values"
     if isinstance(value, (list, tuple)):
-        return f"expected a list of {len(args)} {what}, got {len(value)} items: {list(value)!r}"
-    return f"expected a list of {len(args)} {what}, got {_describe(value)}"
+        return f"expected a list of {count} {what}, got {len(value)} items: {list(value)!r}"
+    return f"expected a list of {count} {what}, got {_describe(value)}"
 
 
 def _number(x: Any) -> str:

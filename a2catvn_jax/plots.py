@@ -6,7 +6,8 @@ One panel per metric (success rate, episode length, SPL by default) against fram
 one line per run, each smoothed by a running mean over `--smooth` log rows. Any column
 of the runs' metrics.jsonl is a metric: e.g. `--metrics grad_norm/reward_prediction
 grad_norm/actor --log-y` for the gradient norms a run with `train.grad_norm_every`
-logs.
+logs, and so is any column of eval.jsonl (evaluation during training, `train.eval`),
+e.g. `--metrics held-out/sample/success_rate held-out/sample/spl`.
 """
 
 from __future__ import annotations
@@ -14,8 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from a2catvn_jax.run.logger import read_jsonl
-from a2catvn_jax.run.plots import METRICS, plot_runs
+from a2catvn_jax.run.plots import METRICS, logged, plot_runs
 
 
 def main(argv=None) -> None:
@@ -33,7 +33,7 @@ def main(argv=None) -> None:
     for w in args.workdirs:
         if not (Path(w) / "metrics.jsonl").exists():
             parser.error(f"{w}: no metrics.jsonl")
-        columns.update(k for row in read_jsonl(Path(w) / "metrics.jsonl") for k in row)
+        columns.update(k for rows in logged(w).values() for row in rows for k in row)
     unknown = [m for m in args.metrics if m not in columns]
     if unknown:
         parser.error(f"no run logs {', '.join(map(repr, unknown))}; the runs' columns: {', '.join(sorted(columns))}")

@@ -471,3 +471,29 @@ def test_paper_config_has_table_one():
     assert (t.pixel_control_gamma, t.pixel_control_cell, t.aux_downsize) == (0.9, 4, 4)
     assert t.curriculum and t.curriculum_complexity == (0.3, 1.0) and t.curriculum_frames == (5_000_000, 10_000_000)
     assert cfg.env.render.image_size == 174
+
+
+def test_evaluation_during_training_settings():
+    """`train.eval`: house sets and policies are lists of the known names (one name alone
+    is a list of one), none twice; it needs the MuJoCo world, and held-out houses need
+    generated ones. Each bad value is one line naming its key."""
+    ec = load_config(None, ["train.eval.every=10", "train.eval.houses=[held-out, train]",
+                            "train.eval.policies=greedy"]).train.eval
+    assert (ec.every, ec.houses, ec.policies, ec.episodes, ec.seed) == (10, ("held-out", "train"), ("greedy",), 100, 1000)
+    assert load_config(None).train.eval.every == 0  # off by default
+    for overrides, key, fragment in [
+        (["train.eval.houses=[mars]"], "train.eval.houses[0]", "'held-out'"),
+        (["train.eval.houses=[]"], "train.eval.houses", "one or more of 'train', 'held-out', 'new-targets'"),
+        (["train.eval.policies=[greedy, greedy]"], "train.eval.policies", "lists a value twice"),
+        (["train.eval.policies=[oracle]"], "train.eval.policies[0]", "'sample' or 'greedy'"),
+        (["train.eval.every=-1"], "train.eval.every", ">= 0"),
+        (["train.eval.every=5", "env.kind=synthetic"], "train.eval.every", "needs the MuJoCo world"),
+        (["train.eval.every=5", "env.scene.kind=mjcf", "env.scene.mjcf_path=x.xml"], "train.eval.houses",
+         "held-out houses need generated scenes"),
+    ]:
+        with pytest.raises(ConfigError) as ei:
+            load_config(None, overrides)
+        msg = str(ei.value)
+        assert msg.startswith(key + ":") and fragment in msg and "\n" not in msg, msg
+    # Without evaluation the same settings are not checked against the environment.
+    load_config(None, ["env.kind=synthetic", "train.eval.houses=[held-out]"])

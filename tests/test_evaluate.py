@@ -1,8 +1,9 @@
 """The evaluate command: result fields and their consistency, determinism, the video,
-held-out houses, evaluation-only overrides, and clean errors.
+held-out houses, evaluation-only overrides, and clean errors; evaluation during
+training (`train.eval`) against it.
 
-One tiny run (16x16 images, 4 environments, 2 updates) is trained per module; every
-test evaluates or damages (a copy of) it.
+One tiny run (16x16 images, 4 environments, 2 updates, evaluated during training at
+update 2) is trained per module; every test evaluates or damages (a copy of) it.
 """
 
 from __future__ import annotations
@@ -27,8 +28,11 @@ from a2catvn_jax.run.training import train
 from a2catvn_jax.run.video import write_video
 from tiny import TINY_LEARNER
 
-TINY = TINY_LEARNER + ["env.scene.num_scenes=1", "env.scene.kind=room", "env.max_episode_steps=20", "train.log_every=1"]
 EPISODES = 6
+TINY = TINY_LEARNER + ["env.scene.num_scenes=1", "env.scene.kind=room", "env.max_episode_steps=20", "train.log_every=1"]
+# Evaluation during training at update 2, on the episodes the tests below evaluate.
+DURING = ["train.eval.every=2", f"train.eval.episodes={EPISODES}", "train.eval.seed=3",
+          "train.eval.houses=[train, held-out]", "train.eval.policies=[sample, greedy]"]
 FIELDS = ("step", "frames", "episodes", "success_rate", "spl", "episode_length", "episode_return", "houses", "policy",
           "per_episode")
 PER_EPISODE = ("success", "length", "spl", "return", "start_distance")
@@ -41,7 +45,7 @@ def quiet(*_):
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     workdir = tmp_path_factory.mktemp("run")
-    train(load_config(None, TINY), workdir, max_updates=2, progress=False, log=quiet)
+    train(load_config(None, TINY + DURING), workdir, max_updates=2, progress=False, log=quiet)
     return workdir
 
 
@@ -78,6 +82,25 @@ def test_same_seed_same_result(run, cli_result):
     expected, _ = cli_result
     again = evaluate(run, EPISODES, seed=3, log=quiet)
     assert again == {k: v for k, v in expected.items() if k != "video"}
+
+
+def test_evaluation_during_training_is_evaluate_at_that_update(run, cli_result):
+    """The row that `train.eval` wrote at update 2 holds, for each house set and policy,
+    what `evaluate` measures from the checkpoint of update 2 with the same episodes."""
+    rows = [json.loads(line) for line in (run / "eval.jsonl").read_text().splitlines()]
+    assert [(r["update"], r["frames"]) for r in rows] == [(2, 2 * 4 * 4)]
+    row = rows[0]
+    assert set(row) == {"update", "frames"} | {f"{h}/{p}/{k}" for h in ("train", "held-out") for p in ("sample", "greedy")
+                                               for k in ("success_rate", "spl", "episode_length")}
+    expected, _ = cli_result  # training houses, sampled, seed 3
+    greedy = evaluate(run, EPISODES, seed=3, houses="held-out", policy="greedy", log=quiet)
+    for houses, policy, result in (("train", "sample", expected), ("held-out", "greedy", greedy)):
+        for k in ("success_rate", "spl", "episode_length"):
+            assert row[f"{houses}/{policy}/{k}"] == pytest.approx(result[k], abs=1e-9), (houses, policy, k)
+    assert all(0 <= row[f"{h}/{p}/spl"] <= row[f"{h}/{p}/success_rate"] <= 1 and
+               1 <= row[f"{h}/{p}/episode_length"] <= 20 for h in ("train", "held-out") for p in ("sample", "greedy"))
+    header = (run / "eval.csv").read_text().splitlines()[0].split(",")
+    assert header == list(row)
 
 
 def test_video_has_three_panels(cli_result):

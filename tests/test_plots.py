@@ -9,6 +9,7 @@ import pytest
 from matplotlib.image import imread
 
 from a2catvn_jax import plots
+from a2catvn_jax.run.plots import plot_runs
 
 
 def _run(path, scale):
@@ -51,3 +52,17 @@ def test_a_directory_without_a_log_is_an_error(tmp_path, capsys):
     with pytest.raises(SystemExit):
         plots.main([str(tmp_path), "--out", str(tmp_path / "x.png")])
     assert f"{tmp_path}: no metrics.jsonl" in capsys.readouterr().err
+
+
+def test_evaluations_during_training_are_drawn_as_measured(tmp_path):
+    """A column of eval.jsonl (`train.eval`) is a metric too, drawn unsmoothed at the
+    frames of each evaluation, beside a training column (smoothed) of the same run."""
+    run = _run(tmp_path / "a", 1.0)
+    rows = [{"update": u, "frames": 320 * u, "held-out/sample/success_rate": s} for u, s in ((4, 0.2), (8, 0.5))]
+    (tmp_path / "a" / "eval.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    out = tmp_path / "held_out.png"
+    plots.main([run, "--out", str(out), "--metrics", "success_rate", "held-out/sample/success_rate"])
+    fig = plot_runs([run], out, ["success_rate", "held-out/sample/success_rate"], window=2)
+    trained, held_out = (ax.lines[0] for ax in fig.axes)
+    assert list(held_out.get_xdata()) == [1280, 2560] and list(held_out.get_ydata()) == [0.2, 0.5]
+    assert len(trained.get_xdata()) == 8 and trained.get_ydata()[1] == pytest.approx((0.1 + 0.2) / 2)

@@ -22,7 +22,7 @@ from a2catvn_jax.configio import ConfigError
 from a2catvn_jax.run.distributed import DevicesError, devices_for
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.run.training import next_stop, train, updates_per_call
-from tiny import TINY_SYNTHETIC
+from tiny import TINY_ROOM, TINY_SYNTHETIC
 
 QUIET = dict(progress=False, log=lambda *_: None)
 
@@ -43,6 +43,8 @@ def test_calls_stop_at_log_checkpoint_and_call_boundaries():
     assert updates_per_call(default, "cpu") == 1 and updates_per_call(default, "gpu") == 5
     assert next_stop(0, 100, default, 5) == 5 and next_stop(7, 100, default, 5) == 10
     assert next_stop(7, 100, default, 1) == 8
+    evaluated = load_config(None, TINY_ROOM + ["train.log_every=5", "train.checkpoint_every=500", "train.eval.every=7"])
+    assert [next_stop(u, 100, evaluated, 5) for u in (0, 5, 7, 10, 14)] == [5, 7, 10, 14, 15]
 
 
 def test_many_updates_per_call_match_one_per_call_and_resume_exactly(tmp_path):

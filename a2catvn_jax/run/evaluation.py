@@ -24,7 +24,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from a2catvn_jax.agent.acting import act_as, initial_agent, observe
 from a2catvn_jax.agent.networks import Networks
-from a2catvn_jax.config import Config
+from a2catvn_jax.config import AGENT_POLICIES, Config
 from a2catvn_jax.env import NavEnv
 from a2catvn_jax.env.oracle import oracle_actions
 from a2catvn_jax.memo import Memo
@@ -34,7 +34,7 @@ from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
 
 MAX_CHUNK = 128  # environment steps per compiled call
 BASELINES = ("random", "oracle")  # policies that need no network
-POLICIES = ("sample", "greedy") + BASELINES
+POLICIES = AGENT_POLICIES + BASELINES
 EPISODE_FIELDS = {  # per-episode list -> environment metric
     "success": "success",
     "length": "episode_length",

@@ -17,7 +17,7 @@ from typing import Callable, Optional, Sequence
 import jax
 
 from a2catvn_jax.agent.networks import Networks, Params, make_networks
-from a2catvn_jax.config import Config, ConfigError, apply_overrides
+from a2catvn_jax.config import HOUSES, Config, ConfigError, apply_overrides
 from a2catvn_jax.env import NavEnv, World, action_names, require_world
 from a2catvn_jax.env.scenes import mjcf
 from a2catvn_jax.env.world import make_scenes, share_shapes
@@ -25,7 +25,6 @@ from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError, config_dif
 
 HELD_OUT_OFFSET = 1_000_003  # scene seed offset of held-out houses
 NEW_TARGETS_OFFSET = 2_000_029  # goal seed offset of new targets in the training houses
-HOUSES = ("train", "held-out", "new-targets")
 # Keys the network's shapes depend on ("agent." is the whole section).
 NETWORK_KEYS = ("agent.", "env.render.image_size", "env.action_set", "train.pixel_control_cell", "train.aux_downsize")
 

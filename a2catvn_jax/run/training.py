@@ -4,9 +4,9 @@
 the jitted update, `train.updates_per_call` of them per call (a loop on the device;
 default: `train.log_every` on an accelerator, 1 on the CPU, where a loop around the
 update halves its speed), with the environments split over the local devices;
-it writes metrics every `train.log_every` updates and orbax checkpoints every
-`train.checkpoint_every` updates and on exit (Ctrl-C included), all at call
-boundaries. `resume=True` continues the run in `workdir` from its latest checkpoint:
+it writes metrics every `train.log_every` updates, orbax checkpoints every
+`train.checkpoint_every` updates and on exit (Ctrl-C included), and evaluations every
+`train.eval.every` updates (run/training_eval.py), all at call boundaries. `resume=True` continues the run in `workdir` from its latest checkpoint:
 N updates, stop, resume, N more gives the parameters of 2N updates in one go. A
 non-finite loss stops the run with a `TrainingError` and leaves the last good checkpoint.
 """
@@ -38,6 +38,7 @@ from a2catvn_jax.run.checkpoint import DATA_FORMAT, Checkpointer, CheckpointErro
 from a2catvn_jax.run.logger import Interval, MetricsWriter, truncate_metrics
 from a2catvn_jax.run.memory import checked_compile
 from a2catvn_jax.run.pretraining import load_matching
+from a2catvn_jax.run.training_eval import TrainingEval
 from a2catvn_jax.run.workdir import locked
 
 
@@ -91,10 +92,11 @@ def updates_per_call(cfg, platform: Optional[str] = None) -> int:
 
 def next_stop(update: int, end: int, cfg, per_call: int) -> int:
     """The update count the call starting at `update` runs to: the next multiple of
-    `per_call`, of `train.log_every` or of `train.checkpoint_every`, or `end`, whichever
+    `per_call`, of `train.log_every`, `train.checkpoint_every` or `train.eval.every`, or `end`, whichever
     comes first (calls align to counts, so a resumed run's calls are the same)."""
     tc = cfg.train
-    return min([end] + [(update // k + 1) * k for k in (per_call, tc.log_every, tc.checkpoint_every)])
+    periods = (per_call, tc.log_every, tc.checkpoint_every) + ((tc.eval.every,) if tc.eval.every else ())
+    return min([end] + [(update // k + 1) * k for k in periods])
 
 
 @locked("train")  # one writer per work directory (run/workdir.py)
@@ -118,6 +120,9 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     if init_from is not None and jax.process_count() > 1:
         raise TrainingError("--init-from is not supported in a run of several processes: start it in one process, "
                             "stop it after its first checkpoint, and --resume it with all of them")
+    if cfg.train.eval.every and jax.process_count() > 1:
+        raise TrainingError("train.eval.every: evaluation during training runs in a single process; evaluate the "
+                            "run's checkpoints with python -m a2catvn_jax.evaluate")
     ckpt = Checkpointer(workdir, keep=cfg.train.keep_checkpoints)
     if main:
         ckpt.remove_partial(log)  # half-written checkpoints of a run that stopped while writing one
@@ -187,6 +192,7 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         if dropped:
             log(f"removed {dropped} row(s) after update {start} from {workdir / 'metrics.jsonl'}: the run logs them again")
         writer = MetricsWriter(workdir, note=ckpt.last_complete, purge_step=start * per_update + 1 if start else None)
+    evaluator = TrainingEval(cfg, networks, workdir, start, len(used), log) if cfg.train.eval.every else None
     interval = Interval()
     stop = stop or StopFlag()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -235,6 +241,8 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
                         f"length {_fmt(row['episode_length'], '.0f')} spl {_fmt(row['spl'])}")
             if update % cfg.train.checkpoint_every == 0:
                 ckpt.save(state, cfg, update * per_update)
+            if evaluator is not None and evaluator.due(update):
+                evaluator(state.params, update, update * per_update)
         clean_exit = True
     finally:
         if bar is not None:
