@@ -51,7 +51,8 @@ def test_every_experiment_has_the_blind_control_of_its_task():
             controls = [r for r in st.plan(exp, scale, [0], "/r") if r.cfg.agent.blind == "both"]
             assert [r.variant for r in controls] == [registry.BLIND_CONTROL], exp.name
             path = exp.config_path(scale)
-            assert controls[0].cfg == load_config(path, ["seed=0", "agent.blind=true"])
+            curves = st.curve_overrides(exp, controls[0].cfg, 0)  # what the run evaluates while it trains
+            assert controls[0].cfg == load_config(path, ["seed=0", "agent.blind=true", *curves])
             assert blind_dirs.setdefault((scale, path), controls[0].workdir) == controls[0].workdir
 
 
@@ -618,6 +619,62 @@ def test_the_navigation_experiment_has_the_target_and_observation_blind_controls
     generalisation = {r.variant.label: r.workdir for r in st.plan(EXPERIMENTS["generalisation"], "cpu", [0], "/r")}
     assert runs["A2CAT-VN"].workdir == generalisation["A2CAT-VN"]  # the stored runs are kept
     assert runs["blind A2CAT-VN"].workdir == generalisation["blind A2CAT-VN"]
+    # ... though only the navigation runs evaluate held-out houses while they train: five
+    # times per run (5M frames of 320 per update), with the run's evaluation seed.
+    for seed in (0, 3):
+        ec = st.plan(nav, "cpu", [seed], "/r")[0].cfg.train.eval
+        assert (ec.every, ec.episodes, ec.houses, ec.policies, ec.seed) == (
+            15625 // 5, st.CURVE_EPISODES, ("held-out",), ("sample",), 1000 + seed)
+    assert st.plan(EXPERIMENTS["generalisation"], "cpu", [0], "/r")[0].cfg.train.eval.every == 0
+
+
+def test_held_out_curves_are_stored_summarised_and_drawn(tmp_path):
+    """A run's evaluations during training (eval.jsonl) are stored with it and read back;
+    `summarise` averages them over the runs at the frames all of them evaluated at; the
+    report's figure gets a third panel and its section says what it shows."""
+    a, b = Variant("a"), Variant("b", ("train.max_grad_norm=40",))
+    exp = registry.Experiment("curves", "hand-made", "image_goals", (a, b), evaluations=("held-out",),
+                              held_out_points=2)
+    run = st.plan(exp, "cpu", [0], tmp_path / "runs", TINY, tmp_path / "store")[0]
+    assert run.cfg.train.eval.every == 1  # 2 updates, 2 points
+    run.workdir.mkdir(parents=True)
+    (run.workdir / "metrics.jsonl").write_text(json.dumps({"update": 2, "frames": 32, "success_rate": 0.5}) + "\n")
+    key = stats.HELD_OUT_CURVE
+    rows = [{"update": u, "frames": 16 * u, key: 0.123456789 * u} for u in (1, 2)]
+    (run.workdir / "eval.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    st.store_run(run, {})
+    assert st.run_record(run, {}).eval_log == tuple({**r, key: round(r[key], 4)} for r in rows)
+
+    def log(rates):
+        return [{"frames": 1e5 * (i + 1), "success_rate": r} for i, r in enumerate(rates)]
+
+    def curve(points):
+        return tuple({"update": int(f // 320), "frames": f, key: v} for f, v in points)
+
+    done = {"date": "2026-01-01T00:00:00+00:00", "machine": "m", "git": None}
+    records = [
+        stats.RunRecord(a, 0, "a0", log([0.1] * 10), {}, 60.0, done, curve([(5e5, 0.2), (1e6, 0.4)])),
+        stats.RunRecord(a, 1, "a1", log([0.1] * 10), {}, 60.0, done, curve([(5e5, 0.3), (1e6, 0.6), (1.5e6, 0.7)])),
+        stats.RunRecord(b, 0, "b0", log([0.1] * 10), {}, 60.0, done),
+    ]
+    summary = stats.summarise(exp, records, {"random": {"held-out": {**_result([False] * 9 + [True], 999), "episode_length": 9.5}}}, 0.5)
+    va, vb = summary["variants"]["a"], summary["variants"]["b"]
+    assert va["held_out_curve"]["frames"] == [5e5, 1e6] and va["held_out_curve"]["runs"] == 2
+    assert va["held_out_curve"]["mean"] == pytest.approx([0.25, 0.5])
+    assert va["held_out_curve"]["half_width_95"] == pytest.approx(list(stats.t_interval([[0.2, 0.4], [0.3, 0.6]])[1]))
+    assert vb["held_out_curve"] is None
+    summary.update(scale="cpu", episodes=4, eval_seed_offset=1000, baseline_eval_seed=999, max_episode_steps=10,
+                   not_stored=[])
+    text = report.section(exp, "cpu", summary, "cmd", "img.png")
+    assert "Third panel: success in held-out houses during training" in text and "(a 2) with its 95% t-band" in text
+    from matplotlib.image import imread
+
+    report.plot(summary, tmp_path / "three.png", "with curves")
+    for v in summary["variants"].values():
+        v["held_out_curve"] = None
+    report.plot(summary, tmp_path / "two.png", "without")
+    assert imread(tmp_path / "three.png").shape[1] > imread(tmp_path / "two.png").shape[1]
+    assert "Third panel" not in report.section(exp, "cpu", summary, "cmd", "img.png")
 
 
 def _result(successes, seed, episodes=None, spl=0.1):

@@ -36,15 +36,17 @@ import numpy as np
 import orbax.checkpoint as ocp
 import yaml
 
-from a2catvn_jax.config import Config, ConfigError, from_dict, load_config, save_config, to_dict
+from a2catvn_jax.config import Config, ConfigError, config_keys, from_dict, load_config, save_config, to_dict
 from a2catvn_jax.configio import flat
 from a2catvn_jax.errors import UserError
 
 CONFIG_FILE = "config.yaml"
 CHECKPOINT_DIR = "checkpoints"
 PARTIAL = ".orbax-checkpoint-tmp"  # the suffix (then -<time>) of a checkpoint orbax is still writing
-# Keys that may differ between the run that wrote a checkpoint and the one resuming it.
-BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_checkpoints", "train.grad_norm_every")
+# Keys that may differ between the run that wrote a checkpoint and the one resuming it
+# (how often it logs, saves and evaluates; not what it trains).
+BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_checkpoints", "train.grad_norm_every",
+                    *(k for k in config_keys() if k.startswith("train.eval.")))
 
 
 # The layout of the saved TrainState. 1: observations, info and the replay's rollouts as

@@ -95,6 +95,7 @@ class Experiment:
     evaluations: tuple[str, ...] = ("train", "new-targets", "held-out")
     paper: str = ""  # what the paper reports for this comparison
     cpu_only: bool = False  # one configuration, configs/<config>.yaml, a CPU task at both scales
+    held_out_points: int = 0  # evaluations in held-out houses during each run (train.eval), evenly spaced; 0: none
 
     def threshold_at(self, scale: str) -> float:
         return self.cpu_threshold if scale == "cpu" else self.threshold
@@ -201,6 +202,7 @@ EXPERIMENTS = {e.name: e for e in (
          Variant("A2CAT-VN, clip 40, 256 houses", (CLIP_40, "env.scene.num_scenes=256")), BLIND_CONTROL,
          Variant("target-blind A2CAT-VN", ("agent.blind=target",)),
          Variant("observation-blind A2CAT-VN", ("agent.blind=observation",))),
+        held_out_points=5,
         paper="Not in the paper. Each variant changes one setting that learned faster on the house task, or "
               "(256 houses) trains in four times as many houses; the A2CAT-VN and blind runs are the "
               "generalisation experiment's. The target-blind control sees the "

@@ -25,7 +25,8 @@ from matplotlib.ticker import EngFormatter
 from a2catvn_jax.study.formats import format_estimate, format_frames, format_pooled, format_rmst, frames_text, seeds_text
 from a2catvn_jax.study.registry import BASELINE_LABELS, EVAL_SETS, EXPERIMENTS, SCALES, Experiment
 from a2catvn_jax.study.stats import FINAL_FRACTION, SMOOTH_FRACTION, episode_successes, pooled_success
-from a2catvn_jax.study.store import BASELINE_DIR, DEFAULT_STORE, DONE, LEGACY_EVAL_SEED, plan, stored_runs
+from a2catvn_jax.study.store import (BASELINE_DIR, CURVE_EPISODES, DEFAULT_STORE, DONE, LEGACY_EVAL_SEED, plan,
+                                     stored_runs)
 
 POLICY_NAMES = {"sample": "sampled", "greedy": "greedy"}
 EVAL_KEYS = {"sample": "eval", "greedy": "eval_greedy"}  # where a summary's variant keeps each policy's numbers
@@ -39,11 +40,15 @@ def reference_houses(summary: dict) -> Optional[str]:
 
 def plot(summary: dict, out, title: str) -> None:
     """Success rate and episode length against frames: the mean over seeds, shaded with
-    its 95% t-band; horizontal lines for the threshold and the baselines."""
+    its 95% t-band; horizontal lines for the threshold and the baselines. Where runs
+    evaluated held-out houses during training, a third panel: that success, the mean
+    over those runs with its band, and the baselines in held-out houses."""
     rows = math.ceil((len(summary["variants"]) + 3) / 3)  # legend rows below the panels
     height = 3.4 + 0.17 * rows
-    fig = Figure(figsize=(10, height))
-    axes = fig.subplots(1, 2)
+    curves = {label: v.get("held_out_curve") for label, v in summary["variants"].items()}
+    held_out = any(c is not None for c in curves.values())
+    fig = Figure(figsize=(15 if held_out else 10, height))
+    axes = fig.subplots(1, 3 if held_out else 2)
     threshold = summary["threshold"]
     limits = {"success_rate": 1.0, "episode_length": summary["max_episode_steps"]}
     for label, v in summary["variants"].items():
@@ -57,6 +62,15 @@ def plot(summary: dict, out, title: str) -> None:
             if n > 1:
                 ax.fill_between(frames, np.clip(mean - half, 0, limits[key]), np.clip(mean + half, 0, limits[key]),
                                 color=line.get_color(), alpha=0.2, linewidth=0)
+        if curves[label] is not None:
+            c = curves[label]
+            mean, half = np.array(c["mean"]), np.array(c["half_width_95"])
+            axes[2].plot(c["frames"], mean, marker="o", color=line.get_color())
+            if c["runs"] > 1:
+                axes[2].fill_between(c["frames"], np.clip(mean - half, 0, 1), np.clip(mean + half, 0, 1),
+                                     color=line.get_color(), alpha=0.2, linewidth=0)
+        elif held_out:
+            axes[2].plot([], [], color=line.get_color())  # keeps the colours of the other panels
     axes[0].axhline(threshold, color="grey", linestyle=":", linewidth=1, label=f"threshold {threshold:g}")
     houses = reference_houses(summary)
     for policy, style in (("random", "--"), ("oracle", "-.")):
@@ -65,9 +79,16 @@ def plot(summary: dict, out, title: str) -> None:
             name = f"{BASELINE_LABELS[policy]} ({EVAL_SETS[houses]})"
             axes[0].axhline(result["success_rate"], color="black", linestyle=style, linewidth=1, label=name)
             axes[1].axhline(result["episode_length"], color="black", linestyle=style, linewidth=1)
+    if held_out:
+        for policy, style in (("random", "--"), ("oracle", "-.")):
+            result = summary["baselines"].get(policy, {}).get("held-out")
+            if result is not None:
+                axes[2].axhline(result["success_rate"], color="black", linestyle=style, linewidth=1)
+        axes[2].set_ylim(0, 1.02)
     axes[0].set_ylim(0, 1.02)
     axes[1].set_ylim(0, summary["max_episode_steps"] * 1.02)
-    for ax, name in zip(axes, ("training success rate", "training episode length")):
+    for ax, name in zip(axes, ("training success rate", "training episode length",
+                               "held-out success (sampled), during training")):
         ax.set_xlabel("frames")
         ax.xaxis.set_major_formatter(EngFormatter(sep=""))
         ax.set_title(name)
@@ -232,6 +253,18 @@ def _blind_text(exp: Experiment) -> str:
     return "".join(" " + BLIND_TEXTS[mode] for mode in modes)
 
 
+def _held_out_text(summary: dict) -> str:
+    """What the third panel shows, when runs evaluated held-out houses during training."""
+    counts = {label: v["held_out_curve"]["runs"] for label, v in summary["variants"].items()
+              if v.get("held_out_curve") is not None}
+    if not counts:
+        return ""
+    return (f" Third panel: success in held-out houses during training (`train.eval`: {CURVE_EPISODES} sampled "
+            f"episodes per point with the run's evaluation seed, the same episodes at every point), the mean over "
+            f"the runs that made these evaluations (" + "; ".join(f"{label} {n}" for label, n in counts.items())
+            + ") with its 95% t-band; dashed and dash-dotted: the random policy and the oracle there.")
+
+
 def section(exp: Experiment, scale: str, summary: dict, command: str, image: str) -> str:
     evaluations = exp.evaluations
     seeds = {label: v["seeds"] for label, v in summary["variants"].items()}
@@ -285,7 +318,8 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         + _blind_text(exp)
         + f" Curves: the mean over seeds of the running mean, shaded with its 95% t-band; dotted: the threshold; "
         f"dashed and dash-dotted: the random policy's and the oracle's success rate and episode length in the "
-        f"{EVAL_SETS.get(reference_houses(summary), 'evaluated houses')}.",
+        f"{EVAL_SETS.get(reference_houses(summary), 'evaluated houses')}."
+        + _held_out_text(summary),
     ]
     tests = [(label, v["welch_p_frames_vs_first"]) for label, v in summary["variants"].items()][1:]
     if tests and any(p is not None for _, p in tests):

@@ -238,6 +238,7 @@ class RunRecord:
     evals: dict  # policy -> houses -> its evaluation result there (None or absent: not evaluated)
     seconds: Optional[float]  # its training wall time, if recorded
     done: dict  # its done record: date, machine, git commit
+    eval_log: tuple = ()  # the rows of its evaluations during training (train.eval), if it made any
 
 
 def episode_successes(result: dict) -> int:
@@ -261,12 +262,31 @@ def evaluation_entry(results: Sequence[Optional[dict]]) -> dict:
     return entry
 
 
+HELD_OUT_CURVE = "held-out/sample/success_rate"  # what the held-out curve of `summarise` follows
+
+
+def held_out_curve(eval_logs: Sequence[Sequence[dict]]) -> Optional[dict]:
+    """Success in held-out houses (sampled) during training, over the runs that evaluated
+    it: {"frames", "mean", "half_width_95", "runs"} at the frame counts every one of them
+    evaluated at; None when no run did."""
+    logs = [[r for r in rows if HELD_OUT_CURVE in r] for rows in eval_logs]
+    logs = [rows for rows in logs if rows]
+    if not logs:
+        return None
+    frames = sorted(set.intersection(*({float(r["frames"]) for r in rows} for rows in logs)))
+    values = np.array([[next(float(r[HELD_OUT_CURVE]) for r in rows if float(r["frames"]) == f) for f in frames]
+                       for rows in logs]).reshape(len(logs), len(frames))
+    mean, half = t_interval(values)
+    return {"frames": frames, "mean": mean.tolist(), "half_width_95": half.tolist(), "runs": len(logs)}
+
+
 def summarise(exp: Experiment, records: Sequence[RunRecord], baseline: dict, threshold: float) -> dict:
     """Per variant of `exp`, from its runs' records: curves (mean and 95% t-band), frames
     to threshold (per run; the Kaplan-Meier restricted mean up to the shortest run's last
     frame, `rmst_horizon`, and the log-rank test against the first variant), final
     training success and evaluation numbers of each policy of `EVAL_POLICIES` ("eval":
-    sampled, "eval_greedy"), each per seed, and Welch's tests against the first variant.
+    sampled, "eval_greedy"), each per seed, Welch's tests against the first variant, and
+    ("held_out_curve") held-out success during training where runs evaluated it.
     `baseline`: policy -> houses -> result."""
     variants = {}
     horizon = min(float(r.log[-1]["frames"]) for r in records)
@@ -293,6 +313,7 @@ def summarise(exp: Experiment, records: Sequence[RunRecord], baseline: dict, thr
         entry["final_success"] = [final_success(r.log) for r in mine]
         entry["late_change"] = [late_change(r.log) for r in mine]
         entry["training_seconds"] = [r.seconds for r in mine]
+        entry["held_out_curve"] = held_out_curve([r.eval_log for r in mine])
         entry["eval"] = {h: evaluation_entry([(r.evals.get("sample") or {}).get(h) for r in mine])
                          for h in exp.evaluations}
         entry["eval_greedy"] = {h: evaluation_entry([(r.evals.get("greedy") or {}).get(h) for r in mine])

@@ -10,11 +10,12 @@
   (the columns of `STORED_COLUMNS`, 4 significant digits), the evaluation results
   (`eval_HOUSES_POLICY_EPISODES_seedS.json`, S the evaluation seed, `eval_seed`: 1000 +
   the run's seed; older ones, `eval_HOUSES_POLICY_EPISODES.json`, hold seed 0),
-  experiment_time.json, pretrain_metrics.jsonl (pre-trained variants) and, written
-  last, done.json (updates, frames, date, machine, git commit).
+  experiment_time.json, pretrain_metrics.jsonl (pre-trained variants), eval.jsonl
+  (the evaluations during training of experiments that make them, `curve_overrides`)
+  and, written last, done.json (updates, frames, date, machine, git commit).
 
 The run key hashes the configuration's values that differ from the schema's defaults
-(`Config()`), the seed left out, and whether the run starts from pre-training: a key
+(`Config()`), the seed and `train.eval` left out, and whether the run starts from pre-training: a key
 added to the configuration with its default leaves every key as it was. Baselines that
 need no training are cached in `STORE/SCALE/CONFIG/baselines/`, named by `env_key`, the
 same hash of the environment section alone, and by their evaluation seed
@@ -54,8 +55,10 @@ DEFAULT_STORE = Path("results")
 STORED_COLUMNS = ("update", "frames", "complexity", "episodes", "success_rate", "episode_length", "spl",
                   "episode_return", "grad_norm", "loss/total")
 DONE = "done.json"
+EVAL_LOG = "eval.jsonl"  # the rows of the evaluations during training (run/training_eval.py)
 BASELINE_DIR = "baselines"
 EVAL_SEED_OFFSET = 1000  # a run of seed S is evaluated with seed EVAL_SEED_OFFSET + S
+CURVE_EPISODES = 500  # per evaluation during training (`curve_overrides`), as many as the runner's final ones
 BASELINE_EVAL_SEED = EVAL_SEED_OFFSET - 1  # the baselines' own: below every run's (run seeds are >= 0)
 LEGACY_EVAL_SEED = 0  # what every evaluation stored without a seed in its name used
 
@@ -74,11 +77,16 @@ def _hash(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:8]
 
 
+MEASUREMENT = "train.eval."  # keys of what a run measures while it trains, not of what it trains
+
+
 def config_key(values: Mapping, defaults: Mapping, pretrain: bool = False) -> str:
     """8 hex digits naming a configuration (nested dicts, e.g. `to_dict(cfg)`) by its
-    values that differ from `defaults`, its seed left out, and pre-trained or not: the
-    canonical JSON (sorted dotted keys) of those differences, hashed."""
-    differences = non_defaults({k: v for k, v in values.items() if k != "seed"}, defaults)
+    values that differ from `defaults`, its seed and evaluation during training
+    (`train.eval`) left out, and pre-trained or not: the canonical JSON (sorted dotted
+    keys) of those differences, hashed."""
+    differences = {k: v for k, v in non_defaults({k: v for k, v in values.items() if k != "seed"}, defaults).items()
+                   if not k.startswith(MEASUREMENT)}
     return _hash(json.dumps(differences, sort_keys=True) + ("|pretrain" if pretrain else ""))
 
 
@@ -125,9 +133,22 @@ class Run:
         return (self.stored / DONE).is_file()
 
 
+def curve_overrides(exp: Experiment, cfg, seed: int) -> list[str]:
+    """The `train.eval` settings of a run of `exp` (configuration `cfg`, seed `seed`): its
+    `held_out_points` evaluations in held-out houses, evenly spaced over the run, each of
+    CURVE_EPISODES sampled episodes with the run's evaluation seed (so the last is the
+    run's final held-out evaluation); none when the experiment asks for none."""
+    if not exp.held_out_points:
+        return []
+    every = max(1, total_updates(cfg) // exp.held_out_points)
+    return [f"train.eval.every={every}", f"train.eval.episodes={CURVE_EPISODES}", "train.eval.houses=[held-out]",
+            "train.eval.policies=[sample]", f"train.eval.seed={eval_seed(seed)}"]
+
+
 def plan(exp: Experiment, scale: str, seeds: Sequence[int], root=DEFAULT_ROOT, overrides: Sequence[str] = (),
          store=DEFAULT_STORE) -> list[Run]:
-    """The runs of `exp`: every variant with every seed, configurations checked, each at
+    """The runs of `exp`: every variant with every seed, configurations checked (with the
+    experiment's evaluations during training, `curve_overrides`), each at
     ROOT|STORE/SCALE/CONFIG/RUN_KEY/seed_N."""
     path = exp.config_path(scale)
     runs = []
@@ -136,6 +157,7 @@ def plan(exp: Experiment, scale: str, seeds: Sequence[int], root=DEFAULT_ROOT, o
         relative = Path(scale) / exp.config / key
         for seed in seeds:
             cfg = load_config(path, [*overrides, *variant.overrides, f"seed={seed}"])
+            cfg = load_config(path, [*overrides, *variant.overrides, f"seed={seed}", *curve_overrides(exp, cfg, seed)])
             where = relative / f"seed_{seed}"
             runs.append(Run(variant, seed, cfg, Path(root) / where, Path(store) / where))
     return runs
@@ -253,6 +275,8 @@ def store_run(run: Run, evals: dict) -> None:
     (d / "variant.json").write_text(json.dumps(dataclasses.asdict(run.variant), indent=1) + "\n")
     rows = trim_log(read_jsonl(run.workdir / "metrics.jsonl"))
     _write_jsonl(d / "metrics.jsonl", rows)
+    if (run.workdir / EVAL_LOG).is_file():
+        _write_jsonl(d / EVAL_LOG, [rounded(r) for r in read_jsonl(run.workdir / EVAL_LOG)])
     pre = run.workdir / "pretrain" / "pretrain_metrics.jsonl"
     if pre.is_file():
         _write_jsonl(d / "pretrain_metrics.jsonl", [rounded(r) for r in read_jsonl(pre)])
@@ -281,8 +305,9 @@ def stored_log(run: Run) -> list[dict]:
 
 def run_record(run: Run, evals: dict) -> RunRecord:
     """What the statistics use of the stored `run`, with its evaluations (policy -> houses -> result)."""
+    eval_log = tuple(read_jsonl(run.stored / EVAL_LOG)) if (run.stored / EVAL_LOG).is_file() else ()
     return RunRecord(run.variant, run.seed, run.relative, stored_log(run), evals, training_seconds(run),
-                     done_record(run))
+                     done_record(run), eval_log)
 
 
 # -- evaluations and baselines ----------------------------------------------------------
