@@ -23,7 +23,7 @@ from a2catvn_jax.env.scenes import mjcf
 from a2catvn_jax.env.world import make_scenes
 from a2catvn_jax.evaluate import main
 from a2catvn_jax.run.evaluation import default_output, evaluate
-from a2catvn_jax.run.restore import HELD_OUT_OFFSET, house_env
+from a2catvn_jax.run.restore import HELD_OUT_OFFSET, house_env, restore
 from a2catvn_jax.run.training import train
 from a2catvn_jax.run.video import write_video
 from tiny import TINY_LEARNER
@@ -151,6 +151,10 @@ def test_new_targets_keep_the_houses_and_change_the_goals(run, cli_result):
 def test_network_changes_are_refused(run, capsys):
     with pytest.raises(ConfigError, match="agent.core_size"):
         evaluate(run, 1, overrides=["agent.core_size=32"], log=quiet)
+    # What the trained network is shown may change: `agent.blind` zeroes its inputs.
+    for mode in ("target", "observation", "both"):
+        restored = restore(run, overrides=[f"agent.blind={mode}"])
+        assert restored.networks.blind == mode and restored.run_cfg.agent.blind == "none"
     with pytest.raises(SystemExit) as exc:
         main(["--workdir", str(run), "--set", "env.render.image_size=32"])
     assert exc.value.code == 2 and "env.render.image_size" in capsys.readouterr().err

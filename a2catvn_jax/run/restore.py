@@ -25,8 +25,11 @@ from a2catvn_jax.run.checkpoint import Checkpointer, CheckpointError, config_dif
 
 HELD_OUT_OFFSET = 1_000_003  # scene seed offset of held-out houses
 NEW_TARGETS_OFFSET = 2_000_029  # goal seed offset of new targets in the training houses
-# Keys the network's shapes depend on ("agent." is the whole section).
+# Keys the network's shapes depend on ("agent." is the whole section) ...
 NETWORK_KEYS = ("agent.", "env.render.image_size", "env.action_set", "train.pixel_control_cell", "train.aux_downsize")
+# ... but for what the trained network is shown: `agent.blind` at evaluation zeroes the
+# target images or the observations of a network trained with them (what does it use?).
+INPUT_KEYS = ("agent.blind",)
 
 
 @dataclasses.dataclass
@@ -46,13 +49,14 @@ class Restored:
 
 
 def eval_config(run_cfg, overrides: Sequence[str] = ()):
-    """The run's configuration at complexity 1 with `overrides`; `ConfigError` if they change the network."""
+    """The run's configuration at complexity 1 with `overrides`; `ConfigError` if they change the
+    network (`agent.blind`, what it is shown, may change: `INPUT_KEYS`)."""
     base = apply_overrides(run_cfg, ["env.complexity=1.0"])
     cfg = apply_overrides(base, list(overrides))
     refused = []
     for diff in config_differences(base, cfg, ignore=()):
         key, values = diff.split(": ", 1)
-        if any(key == k or (k.endswith(".") and key.startswith(k)) for k in NETWORK_KEYS):
+        if key not in INPUT_KEYS and any(key == k or (k.endswith(".") and key.startswith(k)) for k in NETWORK_KEYS):
             run_value, given = values.split(" != ", 1)
             refused.append((key, f"{key}: the network depends on it; evaluation keeps the run's value {run_value} "
                                  f"(given {given})"))
