@@ -134,10 +134,9 @@ class Run:
 
 
 def curve_overrides(exp: Experiment, cfg, seed: int) -> list[str]:
-    """The `train.eval` settings of a run of `exp` (configuration `cfg`, seed `seed`): its
-    `held_out_points` evaluations in held-out houses, evenly spaced over the run, each of
-    CURVE_EPISODES sampled episodes with the run's evaluation seed (so the last is the
-    run's final held-out evaluation); none when the experiment asks for none."""
+    """The `train.eval` settings of a run of `exp` (configuration `cfg`): `held_out_points`
+    evaluations in held-out houses over the run, each of CURVE_EPISODES sampled episodes
+    with the run's evaluation seed (the last is its final held-out evaluation)."""
     if not exp.held_out_points:
         return []
     every = max(1, total_updates(cfg) // exp.held_out_points)
@@ -147,9 +146,8 @@ def curve_overrides(exp: Experiment, cfg, seed: int) -> list[str]:
 
 def plan(exp: Experiment, scale: str, seeds: Sequence[int], root=DEFAULT_ROOT, overrides: Sequence[str] = (),
          store=DEFAULT_STORE) -> list[Run]:
-    """The runs of `exp`: every variant with every seed, configurations checked (with the
-    experiment's evaluations during training, `curve_overrides`), each at
-    ROOT|STORE/SCALE/CONFIG/RUN_KEY/seed_N."""
+    """The runs of `exp`: every variant with every seed, configurations checked (with
+    `curve_overrides`), each at ROOT|STORE/SCALE/CONFIG/RUN_KEY/seed_N."""
     path = exp.config_path(scale)
     runs = []
     for variant in exp.variants:
