@@ -103,6 +103,19 @@ def test_evaluation_during_training_is_evaluate_at_that_update(run, cli_result):
     assert header == list(row)
 
 
+def test_evaluation_during_training_needs_a_single_process(tmp_path, monkeypatch):
+    """A run of several processes refuses `train.eval` in one line, before it builds
+    anything (its checkpoints are evaluated afterwards instead)."""
+    import jax
+
+    from a2catvn_jax.run.training import TrainingError
+
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    with pytest.raises(TrainingError, match="^train.eval.every: evaluation during training runs in a single process"):
+        train(load_config(None, TINY + DURING), tmp_path / "w", max_updates=1, progress=False, log=quiet)
+    assert not (tmp_path / "w" / "checkpoints").exists()
+
+
 def test_video_has_three_panels(cli_result):
     _, video = cli_result
     frames = iio.imread(video, index=None)
