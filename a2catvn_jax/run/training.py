@@ -192,7 +192,6 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         if dropped:
             log(f"removed {dropped} row(s) after update {start} from {workdir / 'metrics.jsonl'}: the run logs them again")
         writer = MetricsWriter(workdir, note=ckpt.last_complete, purge_step=start * per_update + 1 if start else None)
-    evaluator = TrainingEval(cfg, networks, workdir, start, len(used), log) if cfg.train.eval.every else None
     interval = Interval()
     stop = stop or StopFlag()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -203,6 +202,10 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     clean_exit = False
     t_log, frames_log = time.perf_counter(), start * per_update
     try:
+        # Its lines go above the progress bar, not through it.
+        evaluator = (TrainingEval(cfg, networks, workdir, start, len(used), bar.write if bar is not None else log)
+                     if cfg.train.eval.every else None)
+        t_log = time.perf_counter()
         update = start
         # Every process asks the others at each call: a signal that reaches them a moment
         # apart stops all of them after the same update.
@@ -242,7 +245,9 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
             if update % cfg.train.checkpoint_every == 0:
                 ckpt.save(state, cfg, update * per_update)
             if evaluator is not None and evaluator.due(update):
+                t_eval = time.perf_counter()
                 evaluator(state.params, update, update * per_update)
+                t_log += time.perf_counter() - t_eval  # the logged frames/s counts training time only
         clean_exit = True
     finally:
         if bar is not None:
