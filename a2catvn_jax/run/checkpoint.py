@@ -43,10 +43,12 @@ from a2catvn_jax.errors import UserError
 CONFIG_FILE = "config.yaml"
 CHECKPOINT_DIR = "checkpoints"
 PARTIAL = ".orbax-checkpoint-tmp"  # the suffix (then -<time>) of a checkpoint orbax is still writing
+# The keys of evaluation during training: what a run measures while it trains, not what it trains.
+EVAL_KEYS = tuple(k for k in config_keys() if k.startswith("train.eval."))
 # Keys that may differ between the run that wrote a checkpoint and the one resuming it
 # (how often it logs, saves and evaluates; not what it trains).
 BOOKKEEPING_KEYS = ("train.log_every", "train.checkpoint_every", "train.keep_checkpoints", "train.grad_norm_every",
-                    *(k for k in config_keys() if k.startswith("train.eval.")))
+                    *EVAL_KEYS)
 
 
 # The layout of the saved TrainState. 1: observations, info and the replay's rollouts as

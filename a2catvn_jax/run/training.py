@@ -200,12 +200,11 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         bar = tqdm(total=end, initial=start, unit="upd", dynamic_ncols=True, file=sys.stderr)
     row = {}
     clean_exit = False
-    t_log, frames_log = time.perf_counter(), start * per_update
     try:
         # Its lines go above the progress bar, not through it.
         evaluator = (TrainingEval(cfg, networks, workdir, start, len(used), bar.write if bar is not None else log)
                      if cfg.train.eval.every else None)
-        t_log = time.perf_counter()
+        t_log, frames_log = time.perf_counter(), start * per_update
         update = start
         # Every process asks the others at each call: a signal that reaches them a moment
         # apart stops all of them after the same update.

@@ -37,11 +37,10 @@ from a2catvn_jax.study import report as rp
 from a2catvn_jax.study import store as st
 from a2catvn_jax.study.registry import BASELINE_LABELS, EVAL_SETS, SCALES, Experiment, ExperimentError
 from a2catvn_jax.study.stats import EVAL_POLICIES, summarise
-from a2catvn_jax.study.store import DEFAULT_ROOT, DEFAULT_STORE, Run
+from a2catvn_jax.study.store import DEFAULT_EPISODES, DEFAULT_ROOT, DEFAULT_STORE, Run
 from a2catvn_jax.study.workers import run_pool
 
 DEFAULT_SEEDS = (0, 1, 2, 3, 4)
-DEFAULT_EPISODES = 500  # per run, house set and policy: Wilson's interval at 0.5 is about +-0.044
 Log = Callable[[str], None]
 
 

@@ -41,7 +41,7 @@ from typing import Mapping, Optional, Sequence
 from a2catvn_jax.agent.update import total_updates
 from a2catvn_jax.config import Config, load_config, save_config, to_dict
 from a2catvn_jax.configio import flat
-from a2catvn_jax.run.checkpoint import CONFIG_FILE, Checkpointer
+from a2catvn_jax.run.checkpoint import CONFIG_FILE, EVAL_KEYS, Checkpointer
 from a2catvn_jax.run.evaluation import to_json
 from a2catvn_jax.run.logger import read_jsonl
 from a2catvn_jax.study import provenance
@@ -58,7 +58,8 @@ DONE = "done.json"
 EVAL_LOG = "eval.jsonl"  # the rows of the evaluations during training (run/training_eval.py)
 BASELINE_DIR = "baselines"
 EVAL_SEED_OFFSET = 1000  # a run of seed S is evaluated with seed EVAL_SEED_OFFSET + S
-CURVE_EPISODES = 500  # per evaluation during training (`curve_overrides`), as many as the runner's final ones
+DEFAULT_EPISODES = 500  # per run, house set and policy: Wilson's interval at 0.5 is about +-0.044
+CURVE_EPISODES = DEFAULT_EPISODES  # per evaluation during training (`curve_overrides`), as many as the final ones
 BASELINE_EVAL_SEED = EVAL_SEED_OFFSET - 1  # the baselines' own: below every run's (run seeds are >= 0)
 LEGACY_EVAL_SEED = 0  # what every evaluation stored without a seed in its name used
 
@@ -77,16 +78,13 @@ def _hash(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:8]
 
 
-MEASUREMENT = "train.eval."  # keys of what a run measures while it trains, not of what it trains
-
-
 def config_key(values: Mapping, defaults: Mapping, pretrain: bool = False) -> str:
     """8 hex digits naming a configuration (nested dicts, e.g. `to_dict(cfg)`) by its
     values that differ from `defaults`, its seed and evaluation during training
     (`train.eval`) left out, and pre-trained or not: the canonical JSON (sorted dotted
     keys) of those differences, hashed."""
     differences = {k: v for k, v in non_defaults({k: v for k, v in values.items() if k != "seed"}, defaults).items()
-                   if not k.startswith(MEASUREMENT)}
+                   if k not in EVAL_KEYS}
     return _hash(json.dumps(differences, sort_keys=True) + ("|pretrain" if pretrain else ""))
 
 
@@ -151,11 +149,11 @@ def plan(exp: Experiment, scale: str, seeds: Sequence[int], root=DEFAULT_ROOT, o
     path = exp.config_path(scale)
     runs = []
     for variant in exp.variants:
-        key = run_key(load_config(path, [*overrides, *variant.overrides]), variant.pretrain)
+        base = load_config(path, [*overrides, *variant.overrides])
+        key = run_key(base, variant.pretrain)
         relative = Path(scale) / exp.config / key
         for seed in seeds:
-            cfg = load_config(path, [*overrides, *variant.overrides, f"seed={seed}"])
-            cfg = load_config(path, [*overrides, *variant.overrides, f"seed={seed}", *curve_overrides(exp, cfg, seed)])
+            cfg = load_config(path, [*overrides, *variant.overrides, f"seed={seed}", *curve_overrides(exp, base, seed)])
             where = relative / f"seed_{seed}"
             runs.append(Run(variant, seed, cfg, Path(root) / where, Path(store) / where))
     return runs
