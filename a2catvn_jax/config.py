@@ -354,6 +354,7 @@ class TrainConfig(Section):
     updates_per_call: Every = 0  # updates one call runs in a device loop (0: 1 on the CPU, log_every on an accelerator)
     keep_checkpoints: Count = 3
     grad_norm_every: Every = 0  # log each loss term's gradient norm on the shared conv layers every N updates (0: off)
+    new_houses_every: Every = 0  # updates between replacing the training scenes with as many newly generated ones (0: never)
     eval: EvalConfig = field(default_factory=EvalConfig)  # evaluation during training (off by default)
 
     def _cross_checks(self, k):
@@ -412,6 +413,13 @@ class Config(Section):
         elif self.train.eval.every and "held-out" in self.train.eval.houses and self.env.scene.kind == "mjcf":
             yield k("train.eval.houses"), (f"held-out houses need generated scenes; {k('env.scene.kind')} is 'mjcf' "
                                            f"(one fixed file)")
+        if self.train.new_houses_every and (self.env.kind != "mujoco" or self.env.scene.kind == "mjcf"):
+            yield k("train.new_houses_every"), (
+                f"new houses need generated scenes; {k('env.kind')} is {self.env.kind!r}" if self.env.kind != "mujoco"
+                else f"new houses need generated scenes; {k('env.scene.kind')} is 'mjcf' (one fixed file)")
+        elif self.train.new_houses_every and self.env.render.backend == "mjx":
+            yield k("train.new_houses_every"), (f"new houses are rendered by the ray caster; {k('env.render.backend')} "
+                                                f"is 'mjx', whose render context holds the first houses' models")
         if self.env.num_envs % self.train.minibatches:
             yield k("train.minibatches"), (f"{self.train.minibatches} does not divide {k('env.num_envs')} = "
                                            f"{self.env.num_envs}: each gradient step takes an equal share")

@@ -611,8 +611,11 @@ def test_the_navigation_experiment_has_the_target_and_observation_blind_controls
     nav = EXPERIMENTS["navigation"]
     assert [v.label for v in nav.variants] == [
         "A2CAT-VN", "A2CAT-VN, clip 40", "A2CAT-VN without reward prediction", "A2CAT-VN, clip 40, 256 houses",
-        "blind A2CAT-VN", "target-blind A2CAT-VN", "observation-blind A2CAT-VN"]
+        "A2CAT-VN, clip 40, new houses every 200k frames", "blind A2CAT-VN", "target-blind A2CAT-VN",
+        "observation-blind A2CAT-VN"]
     runs = {r.variant.label: r for r in st.plan(nav, "cpu", [0], "/r")}
+    renewed = runs["A2CAT-VN, clip 40, new houses every 200k frames"].cfg
+    assert renewed.train.new_houses_every * renewed.train.rollout_length * renewed.env.num_envs == 200_000
     assert runs["target-blind A2CAT-VN"].cfg.agent.blind == "target"
     assert runs["observation-blind A2CAT-VN"].cfg.agent.blind == "observation"
     assert runs["blind A2CAT-VN"].cfg.agent.blind == "both"

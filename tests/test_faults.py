@@ -51,7 +51,7 @@ def _leaves(state):
 def _saved(workdir, step):
     """The leaves of the whole train state saved at `step` in `workdir`."""
     cfg = _cfg()
-    _, _, (init, _), _ = training._build(dataclasses.replace(cfg, seed=0))
+    _, _, (init, _), _, _ = training._build(dataclasses.replace(cfg, seed=0))
     ckpt = Checkpointer(workdir, create=False)
     try:
         state, _ = ckpt.restore(jax.eval_shape(init, jax.random.PRNGKey(cfg.seed)), cfg, step)

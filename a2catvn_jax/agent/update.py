@@ -289,8 +289,9 @@ class Targets(NamedTuple):
     segmentation: jnp.ndarray
 
 
-def targets_of(spec: Learner, env) -> Targets:
-    images = env.target_images()
+def targets_of(spec: Learner, env, world=None) -> Targets:
+    """The target images of `env`'s world (or of `world`, arrays of the same shapes)."""
+    images = env.target_images(world)
     return Targets(images["rgb"], losses.segmentation_targets(images["segmentation"], spec.aux_downsize, _colors(spec)))
 
 
@@ -334,16 +335,17 @@ class Batch(NamedTuple):
         return self.traj, self.truth, self.carry0, self.replay, self.loss_key
 
 
-def collect(spec: Learner, env, networks: Networks, targets: Targets, ts: TrainState) -> Batch:
-    """The rollout of the update that follows `ts`, written to the replay buffer (pure:
-    `ts` is not changed, so a diagnostic can collect the same batch the update will)."""
+def collect(spec: Learner, env, networks: Networks, targets: Targets, ts: TrainState, world=None) -> Batch:
+    """The rollout of the update that follows `ts` (in `world`, default: the environment's
+    own), written to the replay buffer (pure: `ts` is not changed, so a diagnostic can
+    collect the same batch the update will)."""
     key, k_roll, k_loss = jax.random.split(ts.key, 3)
     tau = complexity(spec, ts.update * spec.frames_per_update)
     env_state = env.set_complexity(ts.env_state, tau) if spec.curriculum is not None else ts.env_state
     target_feats = networks.target_stream(ts.params, targets.rgb)
     truth = lambda obs: frame_truth(spec, obs.depth, obs.segmentation)  # noqa: E731
     traj, truth_seq, env_state, agent, stats = rollout(env, networks, ts.params, target_feats, env_state, ts.agent,
-                                                       k_roll, spec.rollout_length, truth)
+                                                       k_roll, spec.rollout_length, truth, world)
     replay = ts.replay if ts.replay is None else replay_lib.add(ts.replay, traj, ts.agent.carry)
     return Batch(traj, truth_seq, ts.agent.carry, replay, k_loss, env_state, agent, stats, key, tau)
 
@@ -357,14 +359,15 @@ def warmup_rollouts(cfg: Config) -> int:
     return max(1, cfg.train.replay_size // cfg.train.rollout_length) - 1
 
 
-def warmup(spec: Learner, rollouts: int, env, networks: Networks, targets: Targets, ts: TrainState) -> TrainState:
+def warmup(spec: Learner, rollouts: int, env, networks: Networks, targets: Targets, ts: TrainState,
+           world=None) -> TrainState:
     """`ts` after `rollouts` (`warmup_rollouts(cfg)`) rollouts of its policy written to the replay buffer:
     the environments, the agent's memory, the buffer and the key move on; the parameters,
     the optimiser state and the update count (so the frame count, the learning rate and
     the curriculum) do not."""
 
     def one(_, ts):
-        batch = collect(spec, env, networks, targets, ts)
+        batch = collect(spec, env, networks, targets, ts, world)
         return ts.replace(env_state=batch.env_state, agent=batch.agent, replay=batch.replay, key=batch.key)
 
     return jax.lax.fori_loop(0, rollouts, one, ts)
@@ -374,12 +377,13 @@ def make_grad_norms(env, networks: Networks, cfg: Config) -> Callable:
     """A jitted diagnostic `grad_norms(TrainState) -> metrics`: the norm of the gradient of
     each weighted loss term (and of their sum) on the conv layers every head shares
     (`networks.SHARED_LAYERS`), on the batch the next update will learn from. It changes
-    no state; the training loop calls it every `train.grad_norm_every` updates."""
+    no state; the training loop calls it every `train.grad_norm_every` updates (with
+    `world`, the arrays of the houses the run is in, when they replace the environment's own)."""
     spec = learner(cfg)
-    targets = targets_of(spec, env)
 
-    def grad_norms(ts: TrainState) -> dict:
-        batch = collect(spec, env, networks, targets, ts)
+    def grad_norms(ts: TrainState, world=None) -> dict:
+        targets = targets_of(spec, env, world)
+        batch = collect(spec, env, networks, targets, ts, world)
 
         def weighted_terms(params):
             _, terms = loss(spec, networks, targets, params, *batch.loss_args)
@@ -420,53 +424,86 @@ def steps_written_out() -> bool:
 
 class UpdateFns(NamedTuple):
     """`init(key, params=None) -> TrainState` (fresh parameters unless given) and the
-    jitted `update(TrainState) -> (TrainState, metrics)` (its argument is donated)."""
+    jitted `update(TrainState, world=None) -> (TrainState, metrics)` (its state is
+    donated; `world`: the arrays of houses that replace the environment's own, as
+    `train.new_houses_every` does, of the same shapes)."""
 
     init: Callable
     update: Callable
 
 
-def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
-    """The jitted training step of configuration `cfg` in `env` (see the module docstring)."""
-    tc, spec = cfg.train, learner(cfg)
-    T, B = tc.rollout_length, env.num_envs
-    optimizer = make_optimizer(cfg)
-    schedule = learning_rate_schedule(cfg)
-    replay_slots = max(1, tc.replay_size // T)
-    targets = targets_of(spec, env)
+def starter(env, networks: Networks, cfg: Config) -> Callable:
+    """`start(ts, key, world=None) -> ts` with every environment at a new episode (in
+    `world`, default: the environment's own houses) drawn with `key`, the agent's memory
+    cleared and the replay buffer emptied, or filled by `warmup` with `train.replay_warmup`:
+    how a run begins, and how it moves to new houses (`make_renew`)."""
+    spec, tc, B = learner(cfg), cfg.train, env.num_envs
+    replay_slots = max(1, tc.replay_size // tc.rollout_length)
     example = jax.eval_shape(lambda: transition_example(cfg, B))  # shapes only: nothing of the batch allocated here
     warmup_steps = warmup_rollouts(cfg)
+
+    def start(ts: TrainState, key, world=None) -> TrainState:
+        env_state = env.reset(key, complexity=complexity(spec, ts.update * spec.frames_per_update), world=world)
+        agent = initial_agent(networks, B)
+        replay = replay_lib.init(example, agent.carry, replay_slots, tc.replay_envs) if spec.replay else None
+        ts = ts.replace(env_state=env_state, agent=agent, replay=replay)
+        if warmup_steps:
+            ts = warmup(spec, warmup_steps, env, networks, targets_of(spec, env, world), ts, world)
+        return ts
+
+    return start
+
+
+def make_renew(env, networks: Networks, cfg: Config) -> Callable:
+    """`renew(ts, world) -> ts` (not jitted): the run moved to the houses of `world`
+    (arrays of the environment's shapes, `world.new_houses`), as `train.new_houses_every`
+    does. Every environment begins a new episode there, the agent's memory is cleared
+    and the replay buffer emptied (its target indices would name the old houses'
+    images), refilled with `train.replay_warmup`; the parameters, the optimiser state
+    and the update count are kept, and the key moves on."""
+    start = starter(env, networks, cfg)
+
+    def renew(ts: TrainState, world) -> TrainState:
+        key, k_env = jax.random.split(ts.key)
+        return start(ts.replace(key=key), k_env, world)
+
+    return renew
+
+
+def make_update(env, networks: Networks, cfg: Config) -> UpdateFns:
+    """The jitted training step of configuration `cfg` in `env` (see the module docstring)."""
+    spec = learner(cfg)
+    optimizer = make_optimizer(cfg)
+    schedule = learning_rate_schedule(cfg)
+    targets = targets_of(spec, env)
+    start = starter(env, networks, cfg)
 
     def init(key, params: Optional[Params] = None) -> TrainState:
         k_param, k_env, k_train = jax.random.split(key, 3)
         params = networks.init(k_param) if params is None else params
-        env_state = env.reset(k_env, complexity=complexity(spec, 0))
-        agent = initial_agent(networks, B)
-        replay = replay_lib.init(example, agent.carry, replay_slots, tc.replay_envs) if spec.replay else None
-        ts = TrainState(params, optimizer.init(params), env_state, agent, replay, k_train, jnp.zeros((), jnp.int32))
-        if warmup_steps:
-            ts = warmup(spec, warmup_steps, env, networks, targets, ts)
-        return ts
+        ts = TrainState(params, optimizer.init(params), None, None, None, k_train, jnp.zeros((), jnp.int32))
+        return start(ts, k_env)
 
-    grad_fn = jax.value_and_grad(functools.partial(loss, spec, networks, targets), has_aux=True)
+    grad_fn = jax.value_and_grad(functools.partial(loss, spec, networks), argnums=1, has_aux=True)
 
-    def step(params, opt_state, traj, truth, carry0, replay, key):
-        (total, terms), grads = grad_fn(params, traj, truth, carry0, replay, key)
+    def step(targets, params, opt_state, traj, truth, carry0, replay, key):
+        (total, terms), grads = grad_fn(targets, params, traj, truth, carry0, replay, key)
         updates, opt_state = optimizer.update(grads, opt_state, params)
         metrics = {**{f"loss/{k}": v for k, v in terms.items()}, "loss/total": total, "grad_norm": optax.tree.norm(grads)}
         return optax.apply_updates(params, updates), opt_state, metrics
 
-    def update(ts: TrainState):
-        batch = collect(spec, env, networks, targets, ts)
+    def update(ts: TrainState, world=None):
+        now = targets if world is None else targets_of(spec, env, world)
+        batch = collect(spec, env, networks, now, ts, world)
         if spec.minibatches == 1:
-            params, opt_state, metrics = step(ts.params, ts.opt_state, *batch.loss_args)
+            params, opt_state, metrics = step(now, ts.params, ts.opt_state, *batch.loss_args)
         else:  # one step per share of the environments, in turn, each from the last one's parameters
             parts = minibatches(spec.minibatches, batch.traj, batch.truth, batch.carry0)
 
             def one(carry, part):
                 params, opt_state = carry
                 (traj, truth, carry0), key = part
-                params, opt_state, metrics = step(params, opt_state, traj, truth, carry0, batch.replay, key)
+                params, opt_state, metrics = step(now, params, opt_state, traj, truth, carry0, batch.replay, key)
                 return (params, opt_state), metrics
 
             keys = jax.random.split(batch.loss_key, spec.minibatches)
@@ -516,7 +553,8 @@ UPDATES = "updates"  # `repeated`'s metric: how many updates its sums are over
 
 
 def repeated(update: Callable, layout: Optional[TrainState] = None, loop: bool = True) -> Callable:
-    """`updates(ts, n) -> (ts, sums)`: `n` updates in one call, a loop on the device (one
+    """`updates(ts, n, world=None) -> (ts, sums)`: `n` updates (in `world`, as `update`
+    takes it) in one call, a loop on the device (one
     compile serves every n), with each metric summed over them, `UPDATES` (= n) and
     `NONFINITE` (the first update, counted from 1, whose metrics were not all finite;
     0 when all were). The host reads one small dict per call, not one per update.
@@ -528,16 +566,16 @@ def repeated(update: Callable, layout: Optional[TrainState] = None, loop: bool =
     def finite(metrics):
         return jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in jax.tree_util.tree_leaves(metrics)]))
 
-    def updates(ts: TrainState, n):
+    def updates(ts: TrainState, n, world=None):
         if not loop:  # one update, the same outputs
-            ts, metrics = update(ts)
+            ts, metrics = update(ts, world)
             return ts, {**metrics, UPDATES: jnp.int32(1), NONFINITE: jnp.where(finite(metrics), 0, 1).astype(jnp.int32)}
-        _, example = jax.eval_shape(update, ts)
+        _, example = jax.eval_shape(update, ts, world)
         zeros = jax.tree_util.tree_map(lambda m: jnp.zeros(m.shape, m.dtype), example)
 
         def body(i, carry):
             ts, sums, bad = carry
-            ts, metrics = update(ts)
+            ts, metrics = update(ts, world)
             bad = jnp.where((bad == 0) & ~finite(metrics), i + 1, bad)
             return ts, jax.tree_util.tree_map(jnp.add, sums, metrics), bad
 
@@ -547,4 +585,5 @@ def repeated(update: Callable, layout: Optional[TrainState] = None, loop: bool =
     if layout is None:
         return jax.jit(updates, donate_argnums=0)
     replicated = NamedSharding(jax.tree_util.tree_leaves(layout)[0].mesh, PartitionSpec())
-    return jax.jit(updates, donate_argnums=0, in_shardings=(layout, replicated), out_shardings=(layout, replicated))
+    return jax.jit(updates, donate_argnums=0, in_shardings=(layout, replicated, replicated),
+                   out_shardings=(layout, replicated))

@@ -6,6 +6,7 @@ environment reads; `World.render` draws frames with the backend `backends.choose
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Optional
 
@@ -90,17 +91,53 @@ class WorldArrays:
 _PAD_FILL = {"gid": -1, "obstacles": 1e6, "goal_dist": np.inf, "oracle_dist": np.inf}
 
 
+NEW_HOUSES_OFFSET = 3_000_017  # scene seed offset of the houses that replace the training houses (`new_houses`)
+
+
+def _kind_scenes(cfg: EnvConfig, num: int, seed: int) -> list[Scene]:
+    sc = cfg.scene
+    if sc.kind == "house":
+        return generate.make_scenes("house", num, seed, grid=tuple(sc.grid), room_size=tuple(sc.room_size), height=sc.height)
+    if sc.kind == "room":
+        return generate.make_scenes("room", num, seed, size=tuple(sc.room_size), height=sc.height)
+    return generate.make_scenes("maze", num, seed, cells=tuple(sc.grid), height=sc.height)
+
+
 def make_scenes(cfg: EnvConfig, seed_offset: int = 0) -> list[Scene]:
     """The configured scenes; `seed_offset` gives a disjoint set (e.g. held-out houses)."""
-    sc = cfg.scene
-    seed = sc.seed + seed_offset
-    if sc.kind == "mjcf":
-        return [mjcf.scene_from_mjcf_file(sc.mjcf_path)]
-    if sc.kind == "house":
-        return generate.make_scenes("house", sc.num_scenes, seed, grid=tuple(sc.grid), room_size=tuple(sc.room_size), height=sc.height)
-    if sc.kind == "room":
-        return generate.make_scenes("room", sc.num_scenes, seed, size=tuple(sc.room_size), height=sc.height)
-    return generate.make_scenes("maze", sc.num_scenes, seed, cells=tuple(sc.grid), height=sc.height)
+    if cfg.scene.kind == "mjcf":
+        return [mjcf.scene_from_mjcf_file(cfg.scene.mjcf_path)]
+    return _kind_scenes(cfg, cfg.scene.num_scenes, cfg.scene.seed + seed_offset)
+
+
+def new_houses(base: "World", generation: int, draws: int = 8) -> tuple[WorldArrays, int]:
+    """(arrays, scenes drawn) of replacement `generation` (>= 1) of `base`'s generated
+    scenes: as many new scenes of the same kind (seeds offset by `NEW_HOUSES_OFFSET` +
+    generation), with their goals and target images, padded to `base.arrays`' shapes so
+    that the functions compiled for `base` take them as data. A drawn scene with more
+    geoms of a type than `base`'s layout holds, or more obstacles, is skipped for the
+    next one; `SceneError` when `draws` times the scene count were drawn and too few fit."""
+    cfg, S = base.cfg, len(base.scenes)
+    seed = cfg.scene.seed + NEW_HOUSES_OFFSET + generation
+    body, room = cfg.camera_height + BODY_MARGIN, base.arrays.obstacles.shape[1]
+    drawn = _kind_scenes(cfg, draws * S, seed)
+    fitting = [s for s in drawn
+               if all(n <= base.layout[t] for t, n in mjcf.geom_counts(s).items())
+               and len(navgrid.obstacle_rects(s, body)) <= room]
+    if len(fitting) < S:
+        raise SceneError(f"new houses {generation}: only {len(fitting)} of {len(drawn)} drawn scenes fit the "
+                         f"training houses' geoms and obstacles; {S} are needed (more training houses, "
+                         f"env.scene.num_scenes, give more room)")
+    raycast = dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, backend="raycast"))  # as `base` renders
+    world = World(raycast, fitting[:S], seed=seed, layout=base.layout)
+    if not world.arrays.fits(base.arrays):
+        wide = [jax.tree_util.keystr(p) for (p, a), b in zip(jax.tree_util.tree_leaves_with_path(world.arrays),
+                                                            jax.tree_util.tree_leaves(base.arrays))
+                if a.ndim != b.ndim or any(m > n for m, n in zip(a.shape, b.shape))]
+        raise SceneError(f"new houses {generation}: their arrays {', '.join(wide)} are larger than the training "
+                         f"houses'")
+    used = drawn.index(fitting[S - 1]) + 1
+    return world.arrays.padded_like(base.arrays), used
 
 
 class World:

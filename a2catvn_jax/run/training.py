@@ -24,13 +24,14 @@ from typing import Optional
 
 import jax
 import numpy as np
-from jax.sharding import Mesh
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm import tqdm
 
 from a2catvn_jax.agent.networks import make_networks
-from a2catvn_jax.agent.update import (NONFINITE, UPDATES, frames_per_update, make_grad_norms, make_update, repeated,
-                                      sharding_of, total_updates)
+from a2catvn_jax.agent.update import (NONFINITE, UPDATES, frames_per_update, make_grad_norms, make_renew, make_update,
+                                      repeated, sharding_of, total_updates)
 from a2catvn_jax.env import make_env
+from a2catvn_jax.env.world import new_houses
 from a2catvn_jax.errors import UserError
 from a2catvn_jax.memo import Memo
 from a2catvn_jax.run import distributed
@@ -79,7 +80,8 @@ def _build(cfg):
     env = make_env(cfg.env)
     networks = make_networks(cfg, env.num_actions)
     grad_norms = make_grad_norms(env, networks, cfg) if cfg.train.grad_norm_every else None
-    return env, networks, make_update(env, networks, cfg), grad_norms
+    renew = make_renew(env, networks, cfg) if cfg.train.new_houses_every else None
+    return env, networks, make_update(env, networks, cfg), grad_norms, renew
 
 
 def updates_per_call(cfg, platform: Optional[str] = None) -> int:
@@ -95,7 +97,8 @@ def next_stop(update: int, end: int, cfg, per_call: int) -> int:
     `per_call`, of `train.log_every`, `train.checkpoint_every` or `train.eval.every`, or `end`, whichever
     comes first (calls align to counts, so a resumed run's calls are the same)."""
     tc = cfg.train
-    periods = (per_call, tc.log_every, tc.checkpoint_every) + ((tc.eval.every,) if tc.eval.every else ())
+    periods = ((per_call, tc.log_every, tc.checkpoint_every) + ((tc.eval.every,) if tc.eval.every else ())
+               + ((tc.new_houses_every,) if tc.new_houses_every else ()))
     return min([end] + [(update // k + 1) * k for k in periods])
 
 
@@ -134,7 +137,12 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
             f"or choose another --workdir"
         )
     t_build = time.perf_counter()
-    env, networks, (init, update_fn), grad_norms = _build(dataclasses.replace(cfg, seed=0))
+    if cfg.train.new_houses_every and jax.process_count() > 1:
+        raise TrainingError("train.new_houses_every: new houses are built in a single process; train with one process")
+    env, networks, (init, update_fn), grad_norms, renew_fn = _build(dataclasses.replace(cfg, seed=0))
+    if renew_fn is not None and env.renderer != "raycast":
+        raise TrainingError(f"train.new_houses_every: new houses are rendered by the ray caster; this run renders "
+                            f"with {env.renderer!r} (set env.render.backend=raycast)")
     per_update = frames_per_update(cfg)
     where = f" on {len(used)} {used[0].platform} devices" if len(used) > 1 else ""
     if jax.process_count() > 1:
@@ -145,9 +153,13 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         log(line)
     key = jax.random.PRNGKey(cfg.seed)
     template = jax.eval_shape(init, key)
-    layout = None
+    layout = replicated = None
     if len(used) > 1:  # the environment axis split over the devices, the rest replicated
-        layout = sharding_of(template, Mesh(np.array(used), ("batch",)))
+        mesh = Mesh(np.array(used), ("batch",))
+        layout, replicated = sharding_of(template, mesh), NamedSharding(mesh, PartitionSpec())
+    # With train.new_houses_every the houses are an argument of the update (data): each new
+    # set is passed to the same compiled update.
+    houses = None if renew_fn is None else jax.eval_shape(lambda: env.world.arrays)
     # One compile serves the whole run: the loop of updates is compiled ahead of time for
     # the abstract state, and a state of other shapes or dtypes would be an error, not a
     # recompile. Its memory and the state's are checked before either is allocated (run/memory.py).
@@ -157,7 +169,7 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     reused = compiled_key in COMPILED
     run_updates, memory = checked_compile(
         cfg, env, lambda abstract: COMPILED.get(compiled_key, lambda: repeated(update_fn, layout, loop=per_call > 1)
-                                                .lower(abstract, np.int32(1)).compile()),
+                                                .lower(abstract, np.int32(1), houses).compile()),
         template, used)
     log((f"compiled the update in {time.perf_counter() - t_compile:.1f} s; " if not reused
          else "the update compiled by an earlier run of this configuration in this process is reused; ")
@@ -184,6 +196,15 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     if not resume:
         ckpt.save(state, cfg, 0)
     start = int(state.update)
+    every = cfg.train.new_houses_every
+    renew = world = None
+    if every:
+        renew = (jax.jit(renew_fn, donate_argnums=0) if layout is None else
+                 jax.jit(renew_fn, donate_argnums=0, in_shardings=(layout, replicated), out_shardings=layout))
+        log(f"new houses every {every} updates ({every * per_update:,} frames): {env.num_scenes} newly generated "
+            f"scenes each time")
+        if start % every or start == 0:  # the houses the state is in (at a multiple of `every` the loop moves it on)
+            world = _new_houses(env, start // every, replicated, log)
     last = total_updates(cfg)
     end = last if max_updates is None else min(last, start + max_updates)
     writer = None
@@ -209,8 +230,13 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         # Every process asks the others at each call: a signal that reaches them a moment
         # apart stops all of them after the same update.
         while update < end and not distributed.any_process(stop.stop):
+            if every and update % every == 0 and update > 0:
+                t_houses = time.perf_counter()
+                world = _new_houses(env, update // every, replicated, log)
+                state = renew(state, world)
+                t_log += time.perf_counter() - t_houses  # the logged frames/s counts training time only
             n = next_stop(update, end, cfg, per_call) - update
-            new_state, sums = run_updates(state, np.int32(n))
+            new_state, sums = run_updates(state, np.int32(n), world)
             sums = jax.device_get(sums)
             bad_at = int(sums.pop(NONFINITE))
             count = int(sums.pop(UPDATES))
@@ -230,7 +256,7 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
                 row = {"update": update, "frames": frames, "fps": (frames - frames_log) / max(now - t_log, 1e-9),
                        **interval.row()}
                 if grad_norms is not None and update % cfg.train.grad_norm_every == 0:
-                    row.update({k: float(v) for k, v in jax.device_get(grad_norms(state)).items()})
+                    row.update({k: float(v) for k, v in jax.device_get(grad_norms(state, world)).items()})
                 if writer is not None:
                     writer.write(row)
                 interval.reset()
@@ -265,6 +291,19 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
     return env, state, row
+
+
+def _new_houses(env, generation: int, replicated, log):
+    """The world arrays of the training houses' replacement `generation` (0: the
+    environment's own houses), replicated over the devices when `replicated` is a sharding."""
+    if generation == 0:
+        world = env.world.arrays
+    else:
+        t0 = time.perf_counter()
+        world, drawn = new_houses(env.world, generation)
+        log(f"new houses {generation}: {env.num_scenes} scenes (the first that fit of {drawn} drawn) built in "
+            f"{time.perf_counter() - t0:.1f} s")
+    return world if replicated is None else jax.device_put(world, replicated)
 
 
 def place(tree, layout):

@@ -203,12 +203,15 @@ EXPERIMENTS = {e.name: e for e in (
         "navigation", "levers for navigating unseen houses (room-type goals over many houses)", "house_rooms",
         (Variant("A2CAT-VN"), Variant("A2CAT-VN, clip 40", (CLIP_40,)),
          Variant("A2CAT-VN without reward prediction", (NO_RP,)),
-         Variant("A2CAT-VN, clip 40, 256 houses", (CLIP_40, "env.scene.num_scenes=256")), BLIND_CONTROL,
+         Variant("A2CAT-VN, clip 40, 256 houses", (CLIP_40, "env.scene.num_scenes=256")),
+         Variant("A2CAT-VN, clip 40, new houses every 200k frames", (CLIP_40, "train.new_houses_every=625")),
+         BLIND_CONTROL,
          Variant("target-blind A2CAT-VN", ("agent.blind=target",)),
          Variant("observation-blind A2CAT-VN", ("agent.blind=observation",))),
         held_out_points=5,
         paper="Not in the paper. Each variant changes one setting that learned faster on the house task, or "
-              "(256 houses) trains in four times as many houses; the A2CAT-VN and blind runs are the "
+              "(256 houses) trains in four times as many houses, or (new houses) in 64 new ones every 625 "
+              "updates (200k frames at B 16), 1,600 over 5M frames; the A2CAT-VN and blind runs are the "
               "generalisation experiment's. The target-blind control sees the "
               "house but a target image of zeros (it cannot tell which room is asked for), the observation-blind "
               "one the target image but observations of zeros (it cannot see where it is).",
