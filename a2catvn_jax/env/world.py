@@ -115,15 +115,22 @@ def new_houses(base: "World", generation: int, draws: int = 8) -> tuple[WorldArr
     scenes: as many new scenes of the same kind (seeds offset by `NEW_HOUSES_OFFSET` +
     generation), with their goals and target images, padded to `base.arrays`' shapes so
     that the functions compiled for `base` take them as data. A drawn scene with more
-    geoms of a type than `base`'s layout holds, or more obstacles, is skipped for the
-    next one; `SceneError` when `draws` times the scene count were drawn and too few fit."""
+    geoms of a type than `base`'s layout holds, more obstacles or a larger occupancy grid
+    is skipped for the next one; `SceneError` when `draws` times the scene count were
+    drawn and too few fit."""
     cfg, S = base.cfg, len(base.scenes)
     seed = cfg.scene.seed + NEW_HOUSES_OFFSET + generation
     body, room = cfg.camera_height + BODY_MARGIN, base.arrays.obstacles.shape[1]
+    H, W = base.arrays.free.shape[1:]
+
+    def fits(scene: Scene) -> bool:
+        x0, y0, x1, y1 = scene.bounds  # the occupancy grid's extent (`navgrid.build`)
+        return (all(n <= base.layout[t] for t, n in mjcf.geom_counts(scene).items())
+                and len(navgrid.obstacle_rects(scene, body)) <= room
+                and np.ceil((y1 - y0) / cfg.grid_resolution) <= H and np.ceil((x1 - x0) / cfg.grid_resolution) <= W)
+
     drawn = _kind_scenes(cfg, draws * S, seed)
-    fitting = [s for s in drawn
-               if all(n <= base.layout[t] for t, n in mjcf.geom_counts(s).items())
-               and len(navgrid.obstacle_rects(s, body)) <= room]
+    fitting = [s for s in drawn if fits(s)]
     if len(fitting) < S:
         raise SceneError(f"new houses {generation}: only {len(fitting)} of {len(drawn)} drawn scenes fit the "
                          f"training houses' geoms and obstacles; {S} are needed (more training houses, "
