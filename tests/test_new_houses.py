@@ -3,6 +3,11 @@ a run, with the compiled update taking them as data; exact resume across a repla
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
 import jax
 import numpy as np
 import pytest
@@ -79,6 +84,43 @@ def test_new_houses_are_different_houses_of_the_same_shapes(straight):
     again, _ = new_houses(env.world, 1)  # the same generation is the same houses (so a resume rebuilds them)
     for a, b in zip(_leaves(first), _leaves(again)):
         np.testing.assert_array_equal(a, b)
+
+
+TWO_DEVICES = textwrap.dedent(
+    """
+    import os, sys
+    os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    import jax, numpy as np
+    sys.path.insert(0, "tests")
+    from test_new_houses import NEW_HOUSES
+    from a2catvn_jax.config import load_config
+    from a2catvn_jax.run.training import train
+
+    lines = []
+    _, state, _ = train(load_config(None, NEW_HOUSES), sys.argv[1] + "/run", max_updates=5, progress=False,
+                        log=lines.append)
+    assert any("4 environments on 2 cpu devices" in line for line in lines), lines
+    assert any(line.startswith("new houses 2:") for line in lines), lines
+    assert len(state.env_state.obs.rgb.addressable_shards) == 2
+    leaves = jax.tree_util.tree_leaves(jax.device_get(state.params))
+    np.savez(sys.argv[1] + "/params.npz", *[np.asarray(x) for x in leaves])
+    print("OK")
+    """
+)
+
+
+def test_new_houses_on_two_devices_give_the_one_device_result(straight, tmp_path):
+    """The environments split over two devices, the new houses replicated on both: the
+    parameters of the one-device run in one go."""
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-c", TWO_DEVICES, str(tmp_path)], cwd=root, capture_output=True, text=True,
+                          timeout=900)
+    assert proc.returncode == 0 and proc.stdout.strip().endswith("OK"), proc.stderr[-3000:]
+    split = np.load(tmp_path / "params.npz")
+    whole = _leaves(straight[1].params)
+    assert len(split.files) == len(whole)
+    for i, b in enumerate(whole):
+        np.testing.assert_allclose(split[f"arr_{i}"], b, rtol=2e-4, atol=2e-6)
 
 
 @pytest.mark.parametrize("setting, message", [
