@@ -94,20 +94,22 @@ _PAD_FILL = {"gid": -1, "obstacles": 1e6, "goal_dist": np.inf, "oracle_dist": np
 NEW_HOUSES_OFFSET = 3_000_017  # scene seed offset of the houses that replace the training houses (`new_houses`)
 
 
-def _kind_scenes(cfg: EnvConfig, num: int, seed: int) -> list[Scene]:
+def _generated(cfg: EnvConfig, num: int, seed: int):
+    """The configured kind's `num` generated scenes from `seed`, one at a time (`generate.scene_stream`)."""
     sc = cfg.scene
     if sc.kind == "house":
-        return generate.make_scenes("house", num, seed, grid=tuple(sc.grid), room_size=tuple(sc.room_size), height=sc.height)
+        return generate.scene_stream("house", num, seed, grid=tuple(sc.grid), room_size=tuple(sc.room_size),
+                                     height=sc.height)
     if sc.kind == "room":
-        return generate.make_scenes("room", num, seed, size=tuple(sc.room_size), height=sc.height)
-    return generate.make_scenes("maze", num, seed, cells=tuple(sc.grid), height=sc.height)
+        return generate.scene_stream("room", num, seed, size=tuple(sc.room_size), height=sc.height)
+    return generate.scene_stream("maze", num, seed, cells=tuple(sc.grid), height=sc.height)
 
 
 def make_scenes(cfg: EnvConfig, seed_offset: int = 0) -> list[Scene]:
     """The configured scenes; `seed_offset` gives a disjoint set (e.g. held-out houses)."""
     if cfg.scene.kind == "mjcf":
         return [mjcf.scene_from_mjcf_file(cfg.scene.mjcf_path)]
-    return _kind_scenes(cfg, cfg.scene.num_scenes, cfg.scene.seed + seed_offset)
+    return list(_generated(cfg, cfg.scene.num_scenes, cfg.scene.seed + seed_offset))
 
 
 def new_houses(base: "World", generation: int, draws: int = 8) -> tuple[WorldArrays, int]:
@@ -129,22 +131,26 @@ def new_houses(base: "World", generation: int, draws: int = 8) -> tuple[WorldArr
                 and len(navgrid.obstacle_rects(scene, body)) <= room
                 and np.ceil((y1 - y0) / cfg.grid_resolution) <= H and np.ceil((x1 - x0) / cfg.grid_resolution) <= W)
 
-    drawn = _kind_scenes(cfg, draws * S, seed)
-    fitting = [s for s in drawn if fits(s)]
+    fitting, drawn = [], 0
+    for scene in _generated(cfg, draws * S, seed):  # each generated only when needed
+        drawn += 1
+        if fits(scene):
+            fitting.append(scene)
+            if len(fitting) == S:
+                break
     if len(fitting) < S:
-        raise SceneError(f"new houses {generation}: only {len(fitting)} of {len(drawn)} drawn scenes fit the "
-                         f"training houses' geoms and obstacles; {S} are needed (more training houses, "
+        raise SceneError(f"new houses {generation}: only {len(fitting)} of {drawn} drawn scenes fit the training "
+                         f"houses' geoms, obstacles and floor; {S} are needed (more training houses, "
                          f"env.scene.num_scenes, give more room)")
     raycast = dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, backend="raycast"))  # as `base` renders
-    world = World(raycast, fitting[:S], seed=seed, layout=base.layout)
+    world = World(raycast, fitting, seed=seed, layout=base.layout)
     if not world.arrays.fits(base.arrays):
         wide = [jax.tree_util.keystr(p) for (p, a), b in zip(jax.tree_util.tree_leaves_with_path(world.arrays),
                                                             jax.tree_util.tree_leaves(base.arrays))
                 if a.ndim != b.ndim or any(m > n for m, n in zip(a.shape, b.shape))]
         raise SceneError(f"new houses {generation}: their arrays {', '.join(wide)} are larger than the training "
                          f"houses'")
-    used = drawn.index(fitting[S - 1]) + 1
-    return world.arrays.padded_like(base.arrays), used
+    return world.arrays.padded_like(base.arrays), drawn
 
 
 class World:

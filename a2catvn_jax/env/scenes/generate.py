@@ -6,7 +6,7 @@ Every generator is a pure function of its seed and arguments and returns a host-
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -28,12 +28,21 @@ def make_scenes(kind: str, num: int, seed: int, **kwargs) -> list[Scene]:
         raise ValueError(f"unknown scene kind {kind!r}; valid kinds: {sorted(GENERATORS)}")
     if num < 0:
         raise ValueError(f"num must be >= 0, got {num}")
+    return list(scene_stream(kind, num, seed, **kwargs))
+
+
+def scene_stream(kind: str, num: int, seed: int, **kwargs) -> Iterator[Scene]:
+    """`make_scenes(kind, num, seed, **kwargs)`'s scenes one at a time, each generated only
+    when it is asked for (the first k are the same whatever `num` is)."""
+    if kind not in GENERATORS:
+        raise ValueError(f"unknown scene kind {kind!r}; valid kinds: {sorted(GENERATORS)}")
     seeds = np.random.SeedSequence(seed).generate_state(max(num, 1), dtype=np.uint32)[:num]
     fn = GENERATORS[kind]
-    return [fn(int(s), name=f"{kind}_{seed}_{i}", **kwargs) for i, s in enumerate(seeds)]
+    return (fn(int(s), name=f"{kind}_{seed}_{i}", **kwargs) for i, s in enumerate(seeds))
 
 
 __all__ = [
     "GENERATORS",
     "make_scenes",
+    "scene_stream",
 ]
