@@ -15,6 +15,7 @@ import pytest
 from a2catvn_jax.config import load_config
 from a2catvn_jax.env.world import new_houses
 from a2catvn_jax.configio import ConfigError
+from a2catvn_jax.env.scenes.errors import SceneError
 from a2catvn_jax.run.training import train
 from tiny import TINY_ROOM
 
@@ -74,16 +75,29 @@ def test_resume_across_new_houses_is_exact(straight, tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
-def test_new_houses_are_different_houses_of_the_same_shapes(straight):
+def test_two_updates_per_call_take_the_new_houses_too(straight, tmp_path):
+    """The device loop of several updates per call (the default on an accelerator) passes
+    the houses to each of its updates: the one-per-call run's parameters, through a resume."""
+    cfg = load_config(None, NEW_HOUSES + ["train.log_every=2", "train.updates_per_call=2"])
+    quiet = lambda *_: None  # noqa: E731
+    train(cfg, tmp_path, max_updates=3, progress=False, log=quiet)
+    _, looped, _ = train(cfg, tmp_path, resume=True, max_updates=2, progress=False, log=quiet)
+    assert int(looped.update) == 5
+    for a, b in zip(_leaves(looped.params), _leaves(straight[1].params)):
+        np.testing.assert_allclose(a, b, rtol=2e-4, atol=2e-6)
+
+
+def test_new_houses_are_other_houses_the_same_each_time(straight):
     env = straight[0]
     first, drawn = new_houses(env.world, 1)
     assert drawn >= env.num_scenes
-    assert jax.tree_util.tree_structure(first) == jax.tree_util.tree_structure(env.world.arrays)
-    assert [a.shape for a in jax.tree_util.tree_leaves(first)] == [
-        a.shape for a in jax.tree_util.tree_leaves(env.world.arrays)]
+    assert not np.array_equal(np.asarray(first.target_rgb), np.asarray(env.world.arrays.target_rgb))
+    assert not np.array_equal(np.asarray(first.free), np.asarray(env.world.arrays.free))
     again, _ = new_houses(env.world, 1)  # the same generation is the same houses (so a resume rebuilds them)
     for a, b in zip(_leaves(first), _leaves(again)):
         np.testing.assert_array_equal(a, b)
+    with pytest.raises(SceneError, match="^new houses 3: only 0 of 0 drawn scenes fit"):
+        new_houses(env.world, 3, draws=0)
 
 
 TWO_DEVICES = textwrap.dedent(

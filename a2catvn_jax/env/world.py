@@ -105,6 +105,14 @@ def _generated(cfg: EnvConfig, num: int, seed: int):
     return generate.scene_stream("maze", num, seed, cells=tuple(sc.grid), height=sc.height)
 
 
+def houses_at(env, every: int, update: int) -> Optional[WorldArrays]:
+    """The arrays of the houses a run with `train.new_houses_every=every` was in after
+    `update` updates (a checkpoint of that update holds its environments there): None
+    for the environment's own (before the first replacement, or `every` 0)."""
+    generation = (update - 1) // every if every and update > 0 else 0
+    return new_houses(env.world, generation)[0] if generation else None
+
+
 def make_scenes(cfg: EnvConfig, seed_offset: int = 0) -> list[Scene]:
     """The configured scenes; `seed_offset` gives a disjoint set (e.g. held-out houses)."""
     if cfg.scene.kind == "mjcf":
@@ -112,7 +120,7 @@ def make_scenes(cfg: EnvConfig, seed_offset: int = 0) -> list[Scene]:
     return list(_generated(cfg, cfg.scene.num_scenes, cfg.scene.seed + seed_offset))
 
 
-def new_houses(base: "World", generation: int, draws: int = 8) -> tuple[WorldArrays, int]:
+def new_houses(base: "World", generation: int, draws: int = 64) -> tuple[WorldArrays, int]:
     """(arrays, scenes drawn) of replacement `generation` (>= 1) of `base`'s generated
     scenes: as many new scenes of the same kind (seeds offset by `NEW_HOUSES_OFFSET` +
     generation), with their goals and target images, padded to `base.arrays`' shapes so
@@ -141,7 +149,7 @@ def new_houses(base: "World", generation: int, draws: int = 8) -> tuple[WorldArr
     if len(fitting) < S:
         raise SceneError(f"new houses {generation}: only {len(fitting)} of {drawn} drawn scenes fit the training "
                          f"houses' geoms, obstacles and floor; {S} are needed (more training houses, "
-                         f"env.scene.num_scenes, give more room)")
+                         f"env.scene.num_scenes, make the room the new ones must fit)")
     raycast = dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, backend="raycast"))  # as `base` renders
     world = World(raycast, fitting, seed=seed, layout=base.layout)
     if not world.arrays.fits(base.arrays):

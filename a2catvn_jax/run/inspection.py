@@ -28,6 +28,7 @@ from a2catvn_jax.agent.networks import VN_HEADS, Networks, make_networks
 from a2catvn_jax.agent.update import make_grad_norms, make_update
 from a2catvn_jax.env import make_env
 from a2catvn_jax.env.scenes.spec import SEGMENTATION_COLORS
+from a2catvn_jax.env.world import houses_at
 from a2catvn_jax.run.checkpoint import Checkpointer
 from a2catvn_jax.run.restore import house_env, locate
 from a2catvn_jax.run.topdown import TopdownMap
@@ -90,8 +91,9 @@ def gradient_norms(workdir, step: Optional[int] = None, batches: int = 8) -> dic
     finally:
         ckpt.close()
     norms = make_grad_norms(env, networks, cfg)
+    houses = houses_at(env, cfg.train.new_houses_every, run.step)  # with train.new_houses_every: where the run was
     keys = [state.key] + [jax.random.fold_in(state.key, i) for i in range(1, batches)]
-    rows = [{k: float(v) for k, v in jax.device_get(norms(state.replace(key=k))).items()} for k in keys]
+    rows = [{k: float(v) for k, v in jax.device_get(norms(state.replace(key=k), houses)).items()} for k in keys]
     return {"step": run.step, "batches": rows, "mean": {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}}
 
 

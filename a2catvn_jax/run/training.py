@@ -197,16 +197,18 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         ckpt.save(state, cfg, 0)
     start = int(state.update)
     every = cfg.train.new_houses_every
-    renew = world = None
+    last = total_updates(cfg)
+    end = last if max_updates is None else min(last, start + max_updates)
+    renew = world = ahead = None
     if every:
         renew = (jax.jit(renew_fn, donate_argnums=0) if layout is None else
                  jax.jit(renew_fn, donate_argnums=0, in_shardings=(layout, replicated), out_shardings=layout))
         log(f"new houses every {every} updates ({every * per_update:,} frames): {env.num_scenes} newly generated "
             f"scenes each time")
-        if start % every or start == 0:  # the houses the state is in (at a multiple of `every` the loop moves it on)
+        if start < end and (start % every or start == 0):  # the houses the state is in (at a multiple of `every` the loop moves it on)
             world = _new_houses(env, start // every, replicated, log)
-    last = total_updates(cfg)
-    end = last if max_updates is None else min(last, start + max_updates)
+        if start == 0 and end > every:  # built now, so that houses that cannot be built stop the run before it trains
+            ahead = (1, _new_houses(env, 1, replicated, log))
     writer = None
     if main:
         dropped = truncate_metrics(workdir, start)  # rows past the checkpoint: the run writes them again
@@ -232,7 +234,9 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
         while update < end and not distributed.any_process(stop.stop):
             if every and update % every == 0 and update > 0:
                 t_houses = time.perf_counter()
-                world = _new_houses(env, update // every, replicated, log)
+                generation = update // every
+                world = ahead[1] if ahead and ahead[0] == generation else _new_houses(env, generation, replicated, log)
+                ahead = None
                 state = renew(state, world)
                 t_log += time.perf_counter() - t_houses  # the logged frames/s counts training time only
             n = next_stop(update, end, cfg, per_call) - update
