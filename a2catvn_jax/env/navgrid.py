@@ -63,11 +63,16 @@ class NavGrid:
         return rects.cell_of(np.asarray(xy), self.origin, self.resolution, self.shape)
 
 
+def grid_shape(scene: Scene, resolution: float) -> tuple[int, int]:
+    """(rows, columns) of the occupancy grid over the scene's bounds."""
+    x0, y0, x1, y1 = scene.bounds
+    return max(int(np.ceil((y1 - y0) / resolution)), 1), max(int(np.ceil((x1 - x0) / resolution)), 1)
+
+
 def build(scene: Scene, resolution: float, agent_radius: float, body_height: float) -> NavGrid:
     """Occupancy grid over the scene's bounds."""
     x0, y0, x1, y1 = scene.bounds
-    w = max(int(np.ceil((x1 - x0) / resolution)), 1)
-    h = max(int(np.ceil((y1 - y0) / resolution)), 1)
+    h, w = grid_shape(scene, resolution)
     origin = np.array([x0, y0], np.float64)
     obstacles = obstacle_rects(scene, body_height)
     grid = NavGrid(origin, resolution, np.zeros((h, w), bool), np.full((h, w), -1, np.int32), obstacles)

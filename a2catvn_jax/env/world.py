@@ -69,9 +69,13 @@ class WorldArrays:
     def fits(self, other: "WorldArrays") -> bool:
         """Whether every array has the rank of `other`'s and no axis longer than it."""
         mine, theirs = jax.tree_util.tree_structure(self), jax.tree_util.tree_structure(other)
-        return mine == theirs and all(
-            a.ndim == b.ndim and all(m <= n for m, n in zip(a.shape, b.shape))
-            for a, b in zip(jax.tree_util.tree_leaves(self), jax.tree_util.tree_leaves(other)))
+        return mine == theirs and not self.larger_than(other)
+
+    def larger_than(self, other: "WorldArrays") -> list[str]:
+        """The fields (paths) whose array has another rank than `other`'s or an axis longer."""
+        return [jax.tree_util.keystr(path) for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(self),
+                                                                  jax.tree_util.tree_leaves(other))
+                if a.ndim != b.ndim or any(m > n for m, n in zip(a.shape, b.shape))]
 
     def padded_like(self, other: "WorldArrays") -> "WorldArrays":
         """These arrays padded to the shapes of `other`'s (which they must `fit`) with
@@ -134,10 +138,9 @@ def new_houses(base: "World", generation: int, draws: int = 64) -> tuple[WorldAr
     H, W = base.arrays.free.shape[1:]
 
     def fits(scene: Scene) -> bool:
-        x0, y0, x1, y1 = scene.bounds  # the occupancy grid's extent (`navgrid.build`)
+        h, w = navgrid.grid_shape(scene, cfg.grid_resolution)
         return (all(n <= base.layout[t] for t, n in mjcf.geom_counts(scene).items())
-                and len(navgrid.obstacle_rects(scene, body)) <= room
-                and np.ceil((y1 - y0) / cfg.grid_resolution) <= H and np.ceil((x1 - x0) / cfg.grid_resolution) <= W)
+                and len(navgrid.obstacle_rects(scene, body)) <= room and h <= H and w <= W)
 
     fitting, drawn = [], 0
     for scene in _generated(cfg, draws * S, seed):  # each generated only when needed
@@ -153,11 +156,8 @@ def new_houses(base: "World", generation: int, draws: int = 64) -> tuple[WorldAr
     raycast = dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, backend="raycast"))  # as `base` renders
     world = World(raycast, fitting, seed=seed, layout=base.layout)
     if not world.arrays.fits(base.arrays):
-        wide = [jax.tree_util.keystr(p) for (p, a), b in zip(jax.tree_util.tree_leaves_with_path(world.arrays),
-                                                            jax.tree_util.tree_leaves(base.arrays))
-                if a.ndim != b.ndim or any(m > n for m, n in zip(a.shape, b.shape))]
-        raise SceneError(f"new houses {generation}: their arrays {', '.join(wide)} are larger than the training "
-                         f"houses'")
+        raise SceneError(f"new houses {generation}: their arrays {', '.join(world.arrays.larger_than(base.arrays))} "
+                         f"are larger than the training houses'")
     return world.arrays.padded_like(base.arrays), drawn
 
 
