@@ -6,6 +6,8 @@
     python -m a2catvn_jax.benchmark train [--configs quickstart paper] [--updates 5]
         [--processes 1 2 | --batch-sizes 16 256 1024 4096]
     python -m a2catvn_jax.benchmark compile [--configs quickstart] [--batch-sizes 16 256 1024 4096]
+    python -m a2catvn_jax.benchmark loop [--configs quickstart] [--updates 20] [--per-call 10 25]
+        [--houses-argument]
     python -m a2catvn_jax.benchmark network [--resolution 84] [--frames 320] [--targets 16]
         [--networks default configs/presets/authors_network.yaml] [--conv-impls xla auto matmul | --layers]
     python -m a2catvn_jax.benchmark profile [--configs quickstart image_goals_cpu paper] [--updates 5]
@@ -57,7 +59,9 @@ lowering, XLA's compile, the compiled program's size and XLA's buffers for one u
 `loop`: training frames/s as the host drives the update, timed in turns in one process:
 one update per call with its metrics read back before the next, against `--per-call K`
 updates per call of the device loop (`train.updates_per_call`), `--updates` updates per
-setting and round, the median of `--repeats` rounds.
+setting and round, the median of `--repeats` rounds. With `--houses-argument`, also one
+update per call compiled with the houses' arrays as an argument, as
+`train.new_houses_every` runs it, against the same update with them compiled in.
 
 `profile`: milliseconds per update of each phase of the training update (rollout and
 the environment alone; the loss forward and forward + backward for plain A2C and for
@@ -145,8 +149,11 @@ def main(argv=None) -> None:
                         help="network, profile: the networks to time, side by side: default (the built-in network) or config "
                              "files of agent keys, e.g. --networks default configs/presets/authors_network.yaml")
     cli.add_config_args(parser, config=False, help="configuration changes applied to every benchmarked setting")
-    parser.add_argument("--per-call", type=int, nargs="+", default=[10, 25], metavar="K",
+    parser.add_argument("--per-call", type=int, nargs="*", default=[10, 25], metavar="K",
                         help="loop: updates per call of the device loop to time against one update per call")
+    parser.add_argument("--houses-argument", action="store_true",
+                        help="loop: also time one update per call compiled with the houses as an argument "
+                             "(as train.new_houses_every runs it)")
     parser.add_argument("--json", help="also write the results to this JSON file")
     args = parser.parse_args(argv)
     if args.what == "train" and args.processes and args.batch_sizes:
@@ -190,7 +197,8 @@ def main(argv=None) -> None:
             rows = []
             for name in args.configs:
                 extra = [f"env.render.image_size={args.paper_resolution}"] if name == "paper" else []
-                r = bench_loop(name, extra + overrides, args.updates, tuple(args.per_call), args.repeats)
+                r = bench_loop(name, extra + overrides, args.updates, tuple(args.per_call), args.repeats,
+                               args.houses_argument)
                 rows.append(r)
                 print(f"{name} (batch {r['batch']}), training frames/s, median of {r['rounds']} rounds of "
                       f"{r['updates']} updates each, in turns: "

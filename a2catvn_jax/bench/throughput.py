@@ -303,12 +303,16 @@ def bench_stream_layers(resolution: int, frames: int, rounds: int, overrides=(),
     return out
 
 
-def bench_loop(name: str, overrides, updates: int, per_call: tuple[int, ...], rounds: int) -> dict:
+def bench_loop(name: str, overrides, updates: int, per_call: tuple[int, ...], rounds: int,
+               houses_argument: bool = False) -> dict:
     """Training frames/s of the update loop as the host drives it, timed in turns in one
     process on one state: `1 update, host read` calls the compiled update once per update
     and reads its metrics back with a finite check before the next (one update per call,
     as a loop without `train.updates_per_call` does), and `K per call` runs K updates in
-    the device loop (`update.repeated`) and reads the summed metrics once per call. Each
+    the device loop (`update.repeated`) and reads the summed metrics once per call. With
+    `houses_argument`, also `1 update, houses as argument`: the same as the first, but
+    the update compiled with the houses' arrays as an argument rather than as constants
+    (how `train.new_houses_every` runs it, so that a new set needs no new compile). Each
     round times `updates` updates of every setting; the median round counts."""
     cfg = load_config(CONFIGS / f"{name}.yaml", overrides)
     env = NavEnv(cfg.env)
@@ -317,9 +321,9 @@ def bench_loop(name: str, overrides, updates: int, per_call: tuple[int, ...], ro
     one = update.lower(state).compile()
     many = repeated(update).lower(state, np.int32(1)).compile()
 
-    def host_read(state):
+    def host_read(state, call=one, *args):
         for _ in range(updates):
-            state, m = one(state)
+            state, m = call(state, *args)
             m = jax.device_get(m)
             assert all(np.isfinite(float(v)) for v in m.values())
         return state
@@ -334,6 +338,10 @@ def bench_loop(name: str, overrides, updates: int, per_call: tuple[int, ...], ro
         return run
 
     settings = {"1 update, host read": host_read, **{f"{k} per call": looped(k) for k in per_call}}
+    if houses_argument:
+        houses = env.world.arrays
+        with_houses = update.lower(state, houses).compile()
+        settings["1 update, houses as argument"] = lambda state: host_read(state, with_houses, houses)
     state = jax.block_until_ready(host_read(state))  # warm: the first calls of each
     for run in settings.values():
         state = jax.block_until_ready(run(state))
