@@ -240,3 +240,17 @@ def test_compile_benchmark_times_the_compile_alone_at_each_batch(monkeypatch, ca
     assert large["update_gib"] > 2 * small["update_gib"] > 0
     printed = capsys.readouterr().out
     assert "HLO ops" in printed and f"{large['hlo_ops']:8d}" in printed
+
+
+def test_loop_benchmark_times_the_update_with_the_houses_as_an_argument(capsys, tmp_path):
+    """`benchmark loop --houses-argument` times the update compiled with the houses as an
+    argument (as `train.new_houses_every` runs it) beside the one with them compiled in;
+    `--per-call` with no value leaves the device loop out."""
+    out = tmp_path / "loop.json"
+    benchmark.main(["loop", "--configs", "quickstart", "--updates", "1", "--repeats", "1", "--per-call",
+                    "--houses-argument", "--json", str(out), "--set", *TINY_LEARNER, "env.scene.num_scenes=2",
+                    *ONLY_DEPTH])
+    (row,) = json.loads(out.read_text())
+    assert set(row["fps"]) == {"1 update, host read", "1 update, houses as argument"}
+    assert all(fps > 0 for fps in row["fps"].values())
+    assert "houses as argument" in capsys.readouterr().out
