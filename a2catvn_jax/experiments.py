@@ -18,7 +18,10 @@ Experiments (`EXPERIMENTS`):
   pretraining     with vs without supervised pre-training
   curriculum      with vs without the complexity curriculum
   generalisation  room-type goals over 64 houses (16 at paper scale), A2CAT-VN and blind; held-out houses and new targets
-  navigation      room-type goals over 64 houses: A2CAT-VN with the clip at 40 or without reward prediction, and blind
+  navigation      room-type goals over many houses, one lever at a time: the clip at 40, no reward prediction,
+                  256 houses, new houses every 200k frames, 256 houses for 20M frames; and blind
+  navigation_preset  configs/presets/navigation.yaml against Table I's settings, blind, target-blind and
+                  observation-blind
   batch           B 16 against B 64 and 256 with Table I's settings and with LAMB and a sqrt-scaled learning rate
   clipping        A2CAT-VN with the gradient-norm clip of Table I (0.5) vs 40, and A2C
   grid            the grid action set on small rooms (A2CAT-VN vs A2C)

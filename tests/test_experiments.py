@@ -6,6 +6,7 @@ evaluation that needs a checkpoint, and trains only an added seed."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import json
 import math
@@ -23,7 +24,7 @@ from a2catvn_jax.errors import Interrupted
 from a2catvn_jax.run.plots import smooth
 from a2catvn_jax.study import compare, formats, registry, report, runner, stats
 from a2catvn_jax.study import store as st
-from a2catvn_jax.study.registry import EXPERIMENTS, ExperimentError, Variant
+from a2catvn_jax.study.registry import EXPERIMENTS, SCALES, ExperimentError, Variant
 from tiny import TINY_LEARNER
 
 # Plain A2C (no auxiliary loss, no replay): the smallest training program to compile.
@@ -607,18 +608,19 @@ def test_plan_prints_one_self_contained_command_per_unfinished_run(tmp_path, cap
             for line in capsys.readouterr().out.strip().splitlines()] == ["blind A2CAT-VN"]
 
 
-def test_the_navigation_experiment_has_the_target_and_observation_blind_controls():
+def test_the_navigation_experiments_levers_and_the_presets_controls():
     nav = EXPERIMENTS["navigation"]
     assert [v.label for v in nav.variants] == [
         "A2CAT-VN", "A2CAT-VN, clip 40", "A2CAT-VN without reward prediction", "A2CAT-VN, clip 40, 256 houses",
-        "A2CAT-VN, clip 40, new houses every 200k frames", "blind A2CAT-VN", "target-blind A2CAT-VN",
-        "observation-blind A2CAT-VN"]
+        "A2CAT-VN, clip 40, new houses every 200k frames", "A2CAT-VN, clip 40, 256 houses, 20M frames",
+        "blind A2CAT-VN"]
     runs = {r.variant.label: r for r in st.plan(nav, "cpu", [0], "/r")}
     renewed = runs["A2CAT-VN, clip 40, new houses every 200k frames"].cfg
     assert renewed.train.new_houses_every * renewed.train.rollout_length * renewed.env.num_envs == 200_000
-    assert runs["target-blind A2CAT-VN"].cfg.agent.blind == "target"
-    assert runs["observation-blind A2CAT-VN"].cfg.agent.blind == "observation"
     assert runs["blind A2CAT-VN"].cfg.agent.blind == "both"
+    longer = runs["A2CAT-VN, clip 40, 256 houses, 20M frames"].cfg
+    assert longer.train.total_frames == 4 * runs["A2CAT-VN, clip 40, 256 houses"].cfg.train.total_frames
+    assert longer.train.eval.every == 4 * runs["A2CAT-VN, clip 40, 256 houses"].cfg.train.eval.every
     generalisation = {r.variant.label: r.workdir for r in st.plan(EXPERIMENTS["generalisation"], "cpu", [0], "/r")}
     assert runs["A2CAT-VN"].workdir == generalisation["A2CAT-VN"]  # the stored runs are kept
     assert runs["blind A2CAT-VN"].workdir == generalisation["blind A2CAT-VN"]
@@ -629,6 +631,30 @@ def test_the_navigation_experiment_has_the_target_and_observation_blind_controls
         assert (ec.every, ec.episodes, ec.houses, ec.policies, ec.seed) == (
             15625 // 5, st.CURVE_EPISODES, ("held-out",), ("sample",), 1000 + seed)
     assert st.plan(EXPERIMENTS["generalisation"], "cpu", [0], "/r")[0].cfg.train.eval.every == 0
+
+    # The preset's experiment: the preset, the paper's settings, and the three controls
+    # (the blind one and A2CAT-VN shared with the generalisation experiment, the preset's
+    # run with the navigation experiment's lever of the same settings).
+    preset = {r.variant.label: r for r in st.plan(EXPERIMENTS["navigation_preset"], "cpu", [0], "/r")}
+    assert list(preset) == ["navigation preset", "A2CAT-VN", "blind A2CAT-VN", "target-blind navigation preset",
+                            "observation-blind navigation preset"]
+    assert preset["navigation preset"].workdir == runs["A2CAT-VN, clip 40, 256 houses"].workdir
+    assert preset["A2CAT-VN"].workdir == generalisation["A2CAT-VN"]
+    assert preset["blind A2CAT-VN"].workdir == generalisation["blind A2CAT-VN"]
+    for mode in ("target", "observation"):
+        control = preset[f"{mode}-blind navigation preset"].cfg
+        assert control.agent.blind == mode
+        assert dataclasses.replace(control, agent=dataclasses.replace(control.agent, blind="none")) \
+            == preset["navigation preset"].cfg
+
+
+def test_the_navigation_preset_is_the_preset_experiments_variant():
+    """configs/presets/navigation.yaml holds what the navigation_preset experiment's
+    "navigation preset" trains, so the preset is the configuration the evidence is for."""
+    for scale in SCALES:
+        base = EXPERIMENTS["navigation_preset"].config_path(scale)
+        (preset,) = [v for v in EXPERIMENTS["navigation_preset"].variants if v.label == "navigation preset"]
+        assert load_config(base, preset.overrides) == load_config([base, CONFIGS / "presets" / "navigation.yaml"])
 
 
 def test_held_out_curves_are_stored_summarised_and_drawn(tmp_path):
