@@ -159,6 +159,8 @@ def main(argv=None) -> None:
     if args.what == "train" and args.processes and args.batch_sizes:
         parser.error("train: give --processes or --batch-sizes, not both")
     overrides = cli.overrides_of(args)
+    if args.what == "loop" and any(k < 1 for k in args.per_call):
+        parser.error(f"loop: --per-call {' '.join(str(k) for k in args.per_call if k < 1)}: must be >= 1")
     if args.what == "render":
         if overrides:
             parser.error("render: --set is not used (every renderer draws the benchmark's house)")

@@ -254,3 +254,17 @@ def test_loop_benchmark_times_the_update_with_the_houses_as_an_argument(capsys, 
     assert set(row["fps"]) == {"1 update, host read", "1 update, houses as argument"}
     assert all(fps > 0 for fps in row["fps"].values())
     assert "houses as argument" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--per-call", "0", "5"], "loop: --per-call 0: must be >= 1"),
+    (["--per-call", "--houses-argument", "--set", "env.render.backend=mjx"],
+     "train.new_houses_every: new houses are rendered by the ray caster"),
+])
+def test_loop_benchmark_refuses_in_one_line(args, message, capsys):
+    """What no run does is refused before anything compiles: a device loop of fewer than
+    one update per call, the houses as an argument where a run cannot renew them."""
+    with pytest.raises(SystemExit):
+        benchmark.main(["loop", "--configs", "quickstart", *args])
+    err = capsys.readouterr().err
+    assert message in err.strip().splitlines()[-1] and "Traceback" not in err

@@ -206,7 +206,7 @@ EXPERIMENTS = {e.name: e for e in (
         "navigation", "levers for navigating unseen houses (room-type goals over many houses)", "house_rooms",
         (Variant("A2CAT-VN"), Variant("A2CAT-VN, clip 40", (CLIP_40,)),
          Variant("A2CAT-VN without reward prediction", (NO_RP,)),
-         Variant("A2CAT-VN, clip 40, 256 houses", (CLIP_40, "env.scene.num_scenes=256")),
+         Variant("A2CAT-VN, clip 40, 256 houses", NAVIGATION),
          Variant("A2CAT-VN, clip 40, new houses every 200k frames", (CLIP_40, "train.new_houses_every=625")),
          Variant("A2CAT-VN, clip 40, 256 houses, 20M frames", NAVIGATION + ("train.total_frames=20000000",)),
          BLIND_CONTROL),
