@@ -268,3 +268,15 @@ def test_loop_benchmark_refuses_in_one_line(args, message, capsys):
         benchmark.main(["loop", "--configs", "quickstart", *args])
     err = capsys.readouterr().err
     assert message in err.strip().splitlines()[-1] and "Traceback" not in err
+
+
+def test_loop_benchmark_refuses_houses_argument_where_auto_resolves_to_mjx(capsys, monkeypatch):
+    """`env.render.backend=auto` resolves to mjx on an accelerator, which the
+    configuration cannot see: the built world's renderer is checked, as training does."""
+    from a2catvn_jax.env import NavEnv
+    monkeypatch.setattr(NavEnv, "renderer", property(lambda self: "mjx"))
+    with pytest.raises(SystemExit):
+        benchmark.main(["loop", "--configs", "quickstart", "--updates", "1", "--repeats", "1", "--per-call",
+                        "--houses-argument", "--set", *TINY_LEARNER, "env.scene.num_scenes=2", *ONLY_DEPTH])
+    err = capsys.readouterr().err
+    assert "this run renders with 'mjx'" in err.strip().splitlines()[-1] and "Traceback" not in err

@@ -14,6 +14,7 @@ from a2catvn_jax.agent.networks import Conv1, make_networks, num_params
 from a2catvn_jax.agent.update import NONFINITE, frames_per_update, make_update, repeated
 from a2catvn_jax.config import CONFIGS, load_config
 from a2catvn_jax.env import NavEnv
+from a2catvn_jax.run.training import check_renewable
 
 
 def env_config(batch: int, resolution: int, overrides):
@@ -319,6 +320,8 @@ def bench_loop(name: str, overrides, updates: int, per_call: tuple[int, ...], ro
     renewing = ["train.new_houses_every=1"] if houses_argument else []
     cfg = load_config(CONFIGS / f"{name}.yaml", [*overrides, *renewing])
     env = NavEnv(cfg.env)
+    if houses_argument:
+        check_renewable(env)
     init, update = make_update(env, make_networks(cfg, env.num_actions), cfg)
     state = init(jax.random.PRNGKey(0))
     one = update.lower(state).compile()

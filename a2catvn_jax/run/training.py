@@ -140,9 +140,8 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
     if cfg.train.new_houses_every and jax.process_count() > 1:
         raise TrainingError("train.new_houses_every: new houses are built in a single process; train with one process")
     env, networks, (init, update_fn), grad_norms, renew_fn = _build(dataclasses.replace(cfg, seed=0))
-    if renew_fn is not None and env.renderer != "raycast":
-        raise TrainingError(f"train.new_houses_every: new houses are rendered by the ray caster; this run renders "
-                            f"with {env.renderer!r} (set env.render.backend=raycast)")
+    if renew_fn is not None:
+        check_renewable(env)
     per_update = frames_per_update(cfg)
     where = f" on {len(used)} {used[0].platform} devices" if len(used) > 1 else ""
     if jax.process_count() > 1:
@@ -295,6 +294,15 @@ def train(cfg, workdir, *, resume: bool = False, max_updates=None, progress: boo
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
     return env, state, row
+
+
+def check_renewable(env) -> None:
+    """Refuse, in one line, a world whose houses `train.new_houses_every` cannot renew: new
+    houses are rendered by the ray caster (`env.render.backend=auto` may resolve to mjx
+    on an accelerator, which the configuration's own checks cannot see)."""
+    if env.renderer != "raycast":
+        raise TrainingError(f"train.new_houses_every: new houses are rendered by the ray caster; this run renders "
+                            f"with {env.renderer!r} (set env.render.backend=raycast)")
 
 
 def _new_houses(env, generation: int, replicated, log):
