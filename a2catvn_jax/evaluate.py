@@ -1,16 +1,18 @@
 """Evaluate a trained agent: success rate, SPL, episode statistics, and a video.
 
     python -m a2catvn_jax.evaluate --workdir DIR [--episodes 100] [--step N]
-        [--houses train|held-out|new-targets] [--policy sample|greedy|random|oracle] [--video FILE.gif|.mp4]
+        [--houses train|held-out|new-targets] [--policy sample|greedy|random|oracle|tour] [--video FILE.gif|.mp4]
         [--video-episodes 2] [--out FILE.json] [--seed 0] [--baselines] [--devices N] [--set KEY=VALUE ...]
-    python -m a2catvn_jax.evaluate --config FILE --policy random|oracle [--episodes 100] [...]
+    python -m a2catvn_jax.evaluate --config FILE --policy random|oracle|tour [--episodes 100] [...]
 
 The parameters of a checkpoint of the run in DIR (the latest, or update N) are
 restored with the run's own configuration. Evaluation only reads the run: it takes no
 lock and may run while the run trains (orbax's checkpoints appear when complete); when
 a checkpoint cannot be read, the error names those that can (`--step N`). The policy (sampled; its argmax with
 `--policy greedy`; or a baseline: uniformly random actions with `--policy random`, the
-shortest-path oracle with `--policy oracle`) then acts in all B environments at
+shortest-path oracle with `--policy oracle`, on room-type goals the tour with
+`--policy tour`, which knows the map but not the goal and looks into the nearest room
+it has not yet seen until the episode ends: `env.tour`) then acts in all B environments at
 curriculum complexity 1 until every environment has finished ceil(episodes / B)
 episodes; the first `--episodes` of these, in environment order, are counted, so that
 short episodes are not favoured. Without a run (`--config FILE` instead of `--workdir`)
@@ -49,8 +51,8 @@ def main(argv=None) -> None:
     parser.add_argument("--step", type=int, default=None, help="checkpoint update to evaluate (default: the latest)")
     parser.add_argument("--houses", choices=HOUSES, default="train", help="the training houses, held-out ones, or the training houses with new targets")
     parser.add_argument("--policy", choices=POLICIES, default="sample",
-                        help="sample from the policy, take its argmax, or a baseline: uniformly random actions "
-                             "or the shortest-path oracle")
+                        help="sample from the policy, take its argmax, or a baseline: uniformly random actions, "
+                             "the shortest-path oracle or the goal-blind tour of the rooms (room-type goals)")
     parser.add_argument("--video", default=None, metavar="FILE",
                         help="video of agent 0 (.gif, or .mp4 with imageio-ffmpeg)")
     parser.add_argument("--video-episodes", type=int, default=2, help="episodes in the video (default 2)")
@@ -58,7 +60,8 @@ def main(argv=None) -> None:
                         help="result JSON (default DIR/eval_<step>_<houses>_<policy>.json)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--baselines", action="store_true",
-                        help="also run the random policy and the shortest-path oracle in the same houses")
+                        help="also run the baselines (random policy, shortest-path oracle; on room-type goals the "
+                             "tour) in the same houses")
     parser.add_argument("--devices", type=int, default=None, metavar="N",
                         help="split the environments over the first N local devices (default: all of them)")
     cli.add_config_args(parser, help="evaluation settings, e.g. --set env.num_envs=32 env.max_episode_steps=500")
@@ -66,7 +69,7 @@ def main(argv=None) -> None:
     if (args.workdir is None) == (args.config is None):
         parser.error("give --workdir DIR (a trained run) or --config FILE (a baseline without a run)")
     if args.workdir is None and args.policy not in BASELINES:
-        parser.error(f"without a run, --policy must be a baseline: {' or '.join(BASELINES)}")
+        parser.error(f"without a run, --policy must be a baseline: {', '.join(BASELINES)}")
     if args.workdir is None and args.step is not None:
         parser.error("--step needs --workdir")
     if args.devices is not None and args.devices < 1:

@@ -44,7 +44,8 @@ evaluated with the sampled policy and with its argmax (greedy) in its training h
 with new targets in them and in held-out houses (`evaluate --houses`), `--episodes`
 episodes each (default 500) with the evaluation seed 1000 + the run's seed; a uniformly
 random policy and the shortest-path oracle, which need no training, are evaluated in the
-same houses with seed 999.
+same houses with seed 999, and so on room-type goals is the goal-blind tour of the rooms
+(`env.tour`: knows the map, not the goal).
 
 Runs as data: a finished, evaluated run is copied to the store (default `results/`),
 `STORE/SCALE/CONFIG/RUN_KEY/seed_N/` (config.yaml, variant.json, metrics.jsonl with the

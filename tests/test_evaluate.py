@@ -239,7 +239,7 @@ def test_baselines_need_no_run(run, tmp_path, capsys, monkeypatch):
     assert oracle["policy"] == "oracle" and oracle["success_rate"] == 1.0
     assert 0 < oracle["spl"] <= 1
     assert _error(["--config", str(cfg_file), "--policy", "sample"], capsys).endswith(
-        "without a run, --policy must be a baseline: random or oracle")
+        "without a run, --policy must be a baseline: random, oracle, tour")
     assert _error(["--config", str(cfg_file), "--workdir", str(run)], capsys).endswith(
         "give --workdir DIR (a trained run) or --config FILE (a baseline without a run)")
 

@@ -779,6 +779,12 @@ def test_summary_censors_frames_to_threshold_and_pools_episodes():
             "left out") in text
     assert "sampled policy: 4 episodes per run and house set, seed 1000 + the run's seed; " in text
     assert "baselines: 10 episodes, seed 999 (stored, reported instead of the 4 episodes with seed 999 asked for)" in text
+    # The tour (room-type goals only) has a row and a sentence where it has a result.
+    assert "goal-blind tour" not in text
+    summary["baselines"]["tour"] = {"train": _result([True] * 8 + [False] * 2, 999), "held-out": None}
+    text = report.section(exp, "cpu", summary, "cmd", "img.png")
+    assert any(line.startswith("| goal-blind tour of the rooms | – | – | – | – | 0.80 | ") for line in text.splitlines())
+    assert "knows the map but not the goal" in text
 
 
 def test_a_report_from_the_store_falls_back_on_older_evaluations_and_says_so(trained, from_store, tmp_path,

@@ -36,13 +36,19 @@ def oracle_actions(env: NavEnv, state: State, key, world: Optional[WorldArrays] 
     w = env.world.arrays if world is None else world
     info = state.info
     keys = jax.random.split(key, info.scene.shape[0])
-    return jax.vmap(_act, in_axes=(None, None, 0, 0, 0, 0))(env, w, info.scene, info.goal, info.pose, keys)
+
+    def act(scene, goal, pose, k):
+        return steer(env, w, scene, pose, k, w.oracle_dist[scene, goal], w.oracle_yaw[scene, goal])[0]
+
+    return jax.vmap(act)(info.scene, info.goal, info.pose, keys)
 
 
-def _act(env: NavEnv, w: WorldArrays, scene, goal, pose, key):
+def steer(env: NavEnv, w: WorldArrays, scene, pose, key, field, heading):
+    """(action, settled) of one agent at `pose` in `scene` heading for the place where
+    geodesic distance `field` [H, W] is 0 and there turning to `heading` [H, W]: the
+    oracle's rule above for any such place. settled: it is there and faces that way."""
     moves = jnp.asarray(env.moves)  # [A, 4]: forward, left, rotate, tilt
     res = env.cfg.grid_resolution
-    field = w.oracle_dist[scene, goal]
 
     def cell(p):
         return rects.cell_of(p[:2], w.grid_origin[scene], res, field.shape)
@@ -81,8 +87,9 @@ def _act(env: NavEnv, w: WorldArrays, scene, goal, pose, key):
     stuck = ~jnp.isfinite(score[best])
     travel = jnp.where(stuck, jax.random.randint(key, (), 0, A), best)
     # Where it should be: face the right way, then step forward.
-    wanted = w.oracle_yaw[scene, goal][cell(pose)]
+    wanted = heading[cell(pose)]
     off = jnp.arctan2(jnp.sin(wanted - pose[2]), jnp.cos(wanted - pose[2]))
     turn = jnp.argmax(turns & (jnp.sign(moves[:, 2]) == jnp.sign(off)))
-    arrived = jnp.where(jnp.abs(off) > smallest_turn / 2, turn, forward)
-    return jnp.where(here <= 0, arrived, travel).astype(jnp.int32)
+    facing = jnp.abs(off) <= smallest_turn / 2
+    arrived = jnp.where(facing, forward, turn)
+    return jnp.where(here <= 0, arrived, travel).astype(jnp.int32), (here <= 0) & facing

@@ -3,7 +3,8 @@
 `evaluate(workdir)` restores the parameters of a checkpoint of the run in `workdir`
 (`run.restore`). The policy (sampled; its argmax with `policy="greedy"`; or a baseline
 that needs no network: uniformly random actions with `policy="random"`, the
-shortest-path oracle with `policy="oracle"`) then acts in all B environments at
+shortest-path oracle with `policy="oracle"`, the goal-blind tour of the rooms with
+`policy="tour"` on room-type goals) then acts in all B environments at
 curriculum complexity 1 until every environment has finished ceil(episodes / B)
 episodes; the first `episodes` of these, in environment order, are counted, so that
 short episodes are not favoured. `evaluate_baseline(cfg)` runs a baseline on a
@@ -25,7 +26,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from a2catvn_jax.agent.acting import act_as, initial_agent, observe
 from a2catvn_jax.agent.networks import Networks
 from a2catvn_jax.config import AGENT_POLICIES, Config
-from a2catvn_jax.env import NavEnv
+from a2catvn_jax.env import NavEnv, tour
 from a2catvn_jax.env.oracle import oracle_actions
 from a2catvn_jax.memo import Memo
 from a2catvn_jax.run import distributed
@@ -33,7 +34,7 @@ from a2catvn_jax.run.restore import HOUSES, Restored, check_houses, house_env, l
 from a2catvn_jax.run.video import check_video_path, episode_frames, write_video
 
 MAX_CHUNK = 128  # environment steps per compiled call
-BASELINES = ("random", "oracle")  # policies that need no network
+BASELINES = ("random", "oracle", "tour")  # policies that need no network
 POLICIES = AGENT_POLICIES + BASELINES
 EPISODE_FIELDS = {  # per-episode list -> environment metric
     "success": "success",
@@ -50,17 +51,22 @@ COMPILED = Memo("jitted evaluation functions, by what fixes them", keep=8)
 def _chunk_fn(env: NavEnv, networks: Optional[Networks], steps: int, policy: str, video: bool):
     """Jitted: `steps` environment steps of the policy in all environments. The world is
     an argument, so environments of one configuration and shapes share one compile.
-    Baselines carry no agent state (None)."""
+    `given` is what the policy reads besides the world (a network: its target
+    features; the tour: its rooms' look-outs) and `agent` what it carries from step to
+    step (a network: its recurrent state; the tour: the rooms looked into; random and
+    oracle: None)."""
 
-    def run(params, world, target_feats, env_state, agent, key):
+    def run(params, world, given, env_state, agent, key):
         def body(carry, k):
             env_state, agent = carry
             if policy == "random":
                 action = jax.random.randint(k, (env.num_envs,), 0, env.num_actions)
             elif policy == "oracle":
                 action = oracle_actions(env, env_state, k, world)
+            elif policy == "tour":
+                action, agent = tour.tour_actions(env, env_state, agent, k, given, world)
             else:
-                core, action = act_as(policy, networks, params, target_feats, agent, env_state.obs, k)
+                core, action = act_as(policy, networks, params, given, agent, env_state.obs, k)
             nxt = env.step(env_state, action, world)
             out = {name: nxt.metrics[metric] for name, metric in EPISODE_FIELDS.items()}
             out["done"] = nxt.done
@@ -69,7 +75,11 @@ def _chunk_fn(env: NavEnv, networks: Optional[Networks], steps: int, policy: str
                 out["video"] = {"rgb": env_state.obs.rgb[0], "target_rgb": env_state.obs.target_rgb[0],
                                 "pose": info.pose[0], "target_pose": info.target_pose[0], "scene": info.scene[0],
                                 "goal": info.goal[0]}
-            return (nxt, None if policy in BASELINES else observe(core, action, nxt)), out
+            if policy == "tour":
+                agent = tour.after_step(agent, nxt.done)
+            elif policy not in BASELINES:
+                agent = observe(core, action, nxt)
+            return (nxt, agent), out
 
         key, sub = jax.random.split(key)
         (env_state, agent), out = jax.lax.scan(body, (env_state, agent), jax.random.split(sub, steps))
@@ -77,6 +87,11 @@ def _chunk_fn(env: NavEnv, networks: Optional[Networks], steps: int, policy: str
 
     key = ("chunk", env.cfg, None if policy in BASELINES else networks, steps, policy, video)
     return COMPILED.get(key, lambda: jax.jit(run))
+
+
+def baselines_for(cfg) -> tuple[str, ...]:
+    """The baselines that apply to environment configuration `cfg` (the tour: room-type goals)."""
+    return tuple(p for p in BASELINES if p != "tour" or cfg.goal == "room")
 
 
 def _check(episodes: int, policy: str, video, video_episodes: int) -> None:
@@ -113,8 +128,9 @@ def evaluate(
     spl, episode_length and episode_return (means over the counted episodes),
     per_episode (lists success, length, spl, return, start_distance), video (its
     path) when one is written, and with `baselines` the success rate, SPL and episode
-    length of the random policy and the shortest-path oracle in the same houses with the
-    same seed ({"random": {...}, "oracle": {...}}). Raises `CheckpointError` (no run, no or unreadable
+    length of the baselines that apply (`baselines_for`: the random policy, the
+    shortest-path oracle and on room-type goals the tour) in the same houses with the
+    same seed ({"random": {...}, "oracle": {...}, ...}). Raises `CheckpointError` (no run, no or unreadable
     checkpoint), `ConfigError` (bad overrides), `ValueError` (bad arguments) and
     `VideoError`.
     """
@@ -129,7 +145,7 @@ def evaluate(
                           video_episodes=video_episodes, log=log)
     if baselines:
         result["baselines"] = {}
-        for p in BASELINES:
+        for p in baselines_for(env.cfg):
             r = run_episodes(None, env, houses, episodes, policy=p, seed=seed, log=log, devices=devices)
             result["baselines"][p] = {k: r[k] for k in ("success_rate", "spl", "episode_length")}
     return result
@@ -152,10 +168,12 @@ def evaluate_sets(workdir, episodes: int = 100, *, houses: Sequence[str] = HOUSE
 def evaluate_baseline(cfg: Config, episodes: int = 100, *, houses: str = "train", policy: str = "random",
                       seed: int = 0, video=None, video_episodes: int = 2,
                       log: Callable[[str], None] = print, devices: Optional[int] = None) -> dict:
-    """A baseline policy ("random" or "oracle") in the houses of configuration `cfg`, no run
+    """A baseline policy ("random", "oracle" or "tour") in the houses of configuration `cfg`, no run
     needed: the result of `evaluate` with step and frames 0 and workdir None."""
     if policy not in BASELINES:
         raise ValueError(f"a baseline policy is one of {BASELINES}, got {policy!r}")
+    if policy == "tour":
+        tour.check_goal(cfg.env)
     check_houses(houses)
     t0 = time.perf_counter()
     env = house_env(cfg.env, houses)
@@ -196,14 +214,17 @@ def run_episodes(restored: Optional[Restored], env: NavEnv, houses: str, episode
     k_reset, key = jax.random.split(jax.random.PRNGKey(seed))
     reset = COMPILED.get(("reset", env.cfg), lambda: jax.jit(lambda k, tau, w: env.reset(k, complexity=tau, world=w)))
     env_state = reset(k_reset, env.cfg.complexity, world)
-    if policy in BASELINES:
-        agent = target_feats = None
+    if policy == "tour":
+        given = tour.rooms(env.world)
+        agent = tour.initial_memory(B, given)
+    elif policy in BASELINES:
+        agent = given = None
     else:
         agent = initial_agent(networks, B)
         target_stream = COMPILED.get(("targets", networks), lambda: jax.jit(networks.target_stream))
-        target_feats = target_stream(params, env.target_images(world)["rgb"])
-    (env_state, agent), (params, world, target_feats) = split_over_devices(
-        (env_state, agent), (params, world, target_feats), B, devices)
+        given = target_stream(params, env.target_images(world)["rgb"])
+    (env_state, agent), (params, world, given) = split_over_devices(
+        (env_state, agent), (params, world, given), B, devices)
 
     found: list[list[dict]] = [[] for _ in range(B)]
     video_steps: list[dict] = []
@@ -211,7 +232,7 @@ def run_episodes(restored: Optional[Restored], env: NavEnv, houses: str, episode
     steps = 0
     t0 = time.perf_counter()
     while min(len(f) for f in found) < per_env or (video is not None and video_done < video_episodes):
-        env_state, agent, key, out = run(params, world, target_feats, env_state, agent, key)
+        env_state, agent, key, out = run(params, world, given, env_state, agent, key)
         out = jax.device_get(out)
         steps += chunk
         for t, b in zip(*np.nonzero(out["done"])):

@@ -17,7 +17,9 @@ from a2catvn_jax.errors import UserError
 
 SCALES = ("cpu", "paper")
 EVAL_SETS = {"train": "training houses", "new-targets": "new targets", "held-out": "held-out houses"}
-BASELINE_LABELS = {"random": "uniformly random policy", "oracle": "shortest-path oracle"}
+BASELINE_LABELS = {"random": "uniformly random policy", "oracle": "shortest-path oracle",
+                   "tour": "goal-blind tour of the rooms"}  # the tour: room-type goals only (`env.tour`)
+BASELINE_STYLES = {"random": "--", "oracle": "-.", "tour": (0, (1, 1))}  # their lines in the curves
 
 AUX_LOSSES = ("off_policy_critic", "pixel_control", "reward_prediction", "depth", "segmentation", "target_segmentation")
 NO_VN = ("train.loss_weights.depth=0", "train.loss_weights.segmentation=0", "train.loss_weights.target_segmentation=0")

@@ -23,7 +23,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import EngFormatter
 
 from a2catvn_jax.study.formats import format_estimate, format_frames, format_pooled, format_rmst, frames_text, seeds_text
-from a2catvn_jax.study.registry import BASELINE_LABELS, EVAL_SETS, EXPERIMENTS, SCALES, Experiment
+from a2catvn_jax.study.registry import BASELINE_LABELS, BASELINE_STYLES, EVAL_SETS, EXPERIMENTS, SCALES, Experiment
 from a2catvn_jax.study.stats import FINAL_FRACTION, SMOOTH_FRACTION, episode_successes, pooled_success
 from a2catvn_jax.study.store import (BASELINE_DIR, CURVE_EPISODES, DEFAULT_STORE, DONE, LEGACY_EVAL_SEED, plan,
                                      stored_runs)
@@ -73,14 +73,14 @@ def plot(summary: dict, out, title: str) -> None:
             axes[2].plot([], [], color=line.get_color())  # keeps the colours of the other panels
     axes[0].axhline(threshold, color="grey", linestyle=":", linewidth=1, label=f"threshold {threshold:g}")
     houses = reference_houses(summary)
-    for policy, style in (("random", "--"), ("oracle", "-.")):
+    for policy, style in BASELINE_STYLES.items():
         result = summary["baselines"].get(policy, {}).get(houses)
         if result is not None:
             name = f"{BASELINE_LABELS[policy]} ({EVAL_SETS[houses]})"
             axes[0].axhline(result["success_rate"], color="black", linestyle=style, linewidth=1, label=name)
             axes[1].axhline(result["episode_length"], color="black", linestyle=style, linewidth=1)
     if held_out:
-        for policy, style in (("random", "--"), ("oracle", "-.")):
+        for policy, style in BASELINE_STYLES.items():
             result = summary["baselines"].get(policy, {}).get("held-out")
             if result is not None:
                 axes[2].axhline(result["success_rate"], color="black", linestyle=style, linewidth=1)
@@ -117,13 +117,30 @@ def table(summary: dict, evaluations: Sequence[str]) -> str:
         for h in evaluations:
             cells += [format_estimate(v["eval"][h]["success_rate"]), format_estimate(v["eval"][h]["spl"])]
         lines.append("| " + " | ".join(cells) + " |")
-    for policy, label in BASELINE_LABELS.items():
+    for policy, label in _reported_baselines(summary, evaluations):
         cells = [label, "–", "–", "–", "–"]
         for h in evaluations:
             r = summary["baselines"].get(policy, {}).get(h)
             cells += ["–", "–"] if r is None else [f"{r['success_rate']:.2f}", f"{r['spl']:.2f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _reported_baselines(summary: dict, evaluations: Sequence[str]) -> list[tuple[str, str]]:
+    """(policy, label) of the random policy, the oracle, and the other baselines that
+    have a result in some of `evaluations` (the tour: on room-type goals)."""
+    return [(p, label) for p, label in BASELINE_LABELS.items()
+            if p in ("random", "oracle") or any(summary["baselines"].get(p, {}).get(h) for h in evaluations)]
+
+
+def _tour_text(summary: dict) -> str:
+    if not any(summary["baselines"].get("tour", {}).values()):
+        return ""
+    return (f" The {BASELINE_LABELS['tour']} (`env.tour`), evaluated like the baselines, knows the map but not the "
+            f"goal: it heads for the nearest room it has not yet looked into, looks at the objects that show that "
+            f"room's type from where the oracle would, and goes on until the episode ends. It recognises nothing, "
+            f"so its success and SPL are what searching with a map reaches by finding alone (densely dotted in the "
+            f"curves).")
 
 
 def _baseline_pooled(result: dict) -> dict:
@@ -147,7 +164,7 @@ def evaluation_table(summary: dict, evaluations: Sequence[str]) -> str:
                 cells += [format_estimate(values), format_pooled(e.get("pooled"), len(v["seeds"])),
                           format_estimate(e.get("spl", values))]
             lines.append("| " + " | ".join(cells) + " |")
-    for policy, label in BASELINE_LABELS.items():
+    for policy, label in _reported_baselines(summary, evaluations):
         cells = [label, "–"]
         for h in evaluations:
             r = summary["baselines"].get(policy, {}).get(h)
@@ -315,6 +332,7 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         f"seeds, with Wilson's 95% score interval, which takes the episodes as independent and so leaves out the "
         f"spread between seeds that the t-interval includes. Baselines, evaluated like the runs but with no "
         f"training: a {BASELINE_LABELS['random']} and the {BASELINE_LABELS['oracle']} (`env.oracle`)."
+        + _tour_text(summary)
         + _blind_text(exp)
         + f" Curves: the mean over seeds of the running mean, shaded with its 95% t-band; dotted: the threshold; "
         f"dashed and dash-dotted: the random policy's and the oracle's success rate and episode length in the "

@@ -30,7 +30,7 @@ import jax
 from a2catvn_jax.agent.update import total_updates
 from a2catvn_jax.config import load_config
 from a2catvn_jax.errors import Interrupted
-from a2catvn_jax.run.evaluation import evaluate_baseline, evaluate_sets
+from a2catvn_jax.run.evaluation import baselines_for, evaluate_baseline, evaluate_sets
 from a2catvn_jax.run.pretraining import PRETRAINED_DIR, pretrain
 from a2catvn_jax.run.training import train
 from a2catvn_jax.study import report as rp
@@ -276,13 +276,13 @@ def evaluate_run(run: Run, houses: Sequence[str], episodes: int, policies: Seque
 
 def baselines(exp: Experiment, scale: str, cfg, houses: Sequence[str], episodes: int, store=DEFAULT_STORE,
               log: Log = lambda _: None, evaluate: bool = True) -> dict:
-    """policy -> houses -> the result of that baseline (`BASELINE_LABELS`) in the
-    experiment's environment with `episodes` and seed `store.BASELINE_EVAL_SEED`, cached
+    """policy -> houses -> the result of each baseline (`BASELINE_LABELS`) that applies
+    (`evaluation.baselines_for`: the tour on room-type goals only) in the experiment's environment with `episodes` and seed `store.BASELINE_EVAL_SEED`, cached
     in STORE/SCALE/CONFIG/baselines/. With `evaluate=False` one not stored falls back on
     the stored one with the most episodes (`store.stored_baselines`), else is None."""
     out: dict = {}
     seed = st.BASELINE_EVAL_SEED
-    for policy in BASELINE_LABELS:
+    for policy in baselines_for(cfg.env):
         out[policy] = {}
         for h in houses:
             result = st.saved_baseline(exp, scale, cfg, policy, h, episodes, store, seed)
