@@ -189,6 +189,7 @@ class EnvConfig(Section):
     object_distance: Positive = 1.5  # metres (object goals)
     view_fraction: Annotated[float, Strict(), Field(ge=0, lt=1)] = 0.045  # room/object goals: image share showing the goal; 0: not needed
     view_steps: Count = 2  # ... in this many observations in a row
+    stop_action: Bool = False  # a "stop" action: success only where the agent stops with the goal reached; a stop elsewhere ends the episode unrewarded
     agent_radius: Annotated[float, Strict(), Field(gt=0, lt=1)] = 0.2  # metres
     camera_height: Positive = 1.0  # metres
     grid_resolution: Annotated[float, Strict(), Field(gt=0, le=1)] = 0.1  # occupancy grid cell size, metres
@@ -207,6 +208,9 @@ class EnvConfig(Section):
         if steepest >= 85.0:
             yield k("max_tilt_deg"), (f"{k('render.fovy')} / 2 + {k('max_tilt_deg')} = {steepest:g} degrees "
                                       f"must be < 85 so that camera rays never become vertical")
+        if self.stop_action and self.kind == "synthetic":
+            yield k("stop_action"), (f"the synthetic test bench has no stop action: {k('stop_action')}=true needs "
+                                     f"{k('kind')}='mujoco'")
         if self.goal == "room" and self.scene.kind != "house":
             yield k("goal"), (f"room-type goals need houses with rooms: {k('goal')}='room' requires "
                               f"{k('scene.kind')}='house' (it is {self.scene.kind!r})")

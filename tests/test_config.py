@@ -295,6 +295,11 @@ def test_cross_field_checks():
         load_config(None, ["env.goal=room", "env.scene.kind=maze"])
     assert load_config(None, ["env.goal=room"]).env.goal == "room"
 
+    with pytest.raises(ConfigError, match=r"^env\.stop_action: the synthetic test bench has no stop action: "
+                                          r"env\.stop_action=true needs env\.kind='mujoco'$"):
+        load_config(None, ["env.kind=synthetic", "env.stop_action=true"])
+    assert load_config(None, ["env.stop_action=true"]).env.stop_action
+
     with pytest.raises(ConfigError, match=r"^train\.rollout_length: reward prediction .* must be >= 4, got 3$"):
         load_config(None, ["train.rollout_length=3", "train.replay_size=30", "train.reward_prediction_target=next_frame"])
     load_config(None, ["train.rollout_length=3", "train.replay_size=30"])  # 3 frames fit

@@ -2,7 +2,8 @@
 
 `NavEnv.reset(key) -> State` and `NavEnv.step(state, action) -> State` act on B agents
 spread over the world's S scenes (agent b lives in scene b mod S) and are jit- and
-vmap-able. An episode ends on success (`terminated`, reward 1) or after
+vmap-able. An episode ends on success (`terminated`, reward 1; with `env.stop_action`
+on any stop, below) or after
 `max_episode_steps` (`truncated`: a time-out, not a terminal state); the agent is
 then reset in the same step (auto-reset): `obs` shows the new episode's first frame
 while `reward`, `terminated`, `truncated` and `metrics` describe the step that ended.
@@ -29,6 +30,12 @@ Success (reward 1, `terminated`) depends on the goal kind (`env.goal`):
   the move, so this is known one step late: the step after such a streak ends the
   episode with reward 1 whatever its action (the action is not carried out). With
   `view_fraction` 0 only the position counts and success comes with the move.
+
+With `env.stop_action` the action set gains a last action, "stop", which does not move
+and always ends the episode (`terminated`): with reward 1 where the criterion above
+holds when it is taken (`goal_reached`), else unrewarded; reaching the goal without
+stopping ends nothing. Success must then be declared, as in ObjectNav, so an agent
+that passes through the goal without recognising it does not succeed.
 
 Actions (paper): forward 0.5 m, backward 0.2 m, left/right 0.35 m sideways, rotate
 +-30 deg, tilt camera +-30 deg ("full"); the same without tilt ("no_tilt"); or
@@ -137,8 +144,9 @@ class Info:
 class State:
     """Batched environment state (leading axis B everywhere).
 
-    obs: `Observation`; reward [B] float32; terminated [B] bool (the step reached the
-    goal); truncated [B] bool (the episode hit the time limit); info: `Info`;
+    obs: `Observation`; reward [B] float32; terminated [B] bool (the step ended the
+    episode in a terminal state: it reached the goal, or with `env.stop_action` the agent
+    stopped, successfully or not; `metrics["success"]` tells which); truncated [B] bool (the episode hit the time limit); info: `Info`;
     data: each environment's `mjx.Data` of its scene (`mjx_world`): the agent's mocap
     body and camera at `info.pose`, the scene's bodies where the episode placed them.
     metrics (of the step just taken; episode_* are meaningful where `done`):
@@ -170,9 +178,10 @@ class NavEnv:
         self.num_envs = cfg.num_envs
         self.action_names = action_names(cfg)
         self.num_actions = len(self.action_names)
-        moves = np.array([m for _, m in ACTION_SETS[cfg.action_set]], np.float32)
+        moves = np.array([m for _, m in ACTION_SETS[cfg.action_set]] + [(0.0,) * 4] * cfg.stop_action, np.float32)
         moves[:, 2:] = np.deg2rad(moves[:, 2:])
         self._moves = moves
+        self.stop_index = self.num_actions - 1 if cfg.stop_action else None  # the stop action, if any
         self._grid = cfg.action_set == "grid"
         self._seen = cfg.goal in ("room", "object") and cfg.view_fraction > 0  # success needs the goal in sight
         self._spec = self.world.spec
@@ -240,15 +249,21 @@ class NavEnv:
         keys, noise_key = jax.vmap(jax.random.split, out_axes=1)(info.key)
         pose, moved = jax.vmap(self._move, in_axes=(None, 0, 0, 0, 0, 0))(
             w, info.scene, info.pose, jnp.asarray(action, jnp.int32), noise_key, self._moving_footprints(state.data))
-        if self._seen:  # the streak up to the current observation decides; the move is not made
-            success = info.view_streak >= self.cfg.view_steps
+        if self.stop_index is not None:  # success only where the agent stops; any stop ends the episode
+            terminal = jnp.asarray(action) == self.stop_index
+            pose = select_where(terminal, info.pose, pose)  # a stop stays put, without motion noise
+            moved = jnp.where(terminal, 0.0, moved)
+            success = terminal & (info.view_streak >= self.cfg.view_steps if self._seen else
+                                  jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose))
+        elif self._seen:  # the streak up to the current observation decides; the move is not made
+            success = terminal = info.view_streak >= self.cfg.view_steps
             pose = select_where(success, info.pose, pose)
             moved = jnp.where(success, 0.0, moved)
         else:
-            success = jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose)
+            success = terminal = jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose)
         step = info.step + 1
-        truncated = (step >= self.cfg.max_episode_steps) & ~success
-        done = success | truncated
+        truncated = (step >= self.cfg.max_episode_steps) & ~terminal
+        done = terminal | truncated
         reward = success.astype(jnp.float32)
         ended = info.replace(pose=pose, step=step, path_length=info.path_length + moved,
                              episode_return=info.episode_return + reward)
@@ -265,7 +280,15 @@ class NavEnv:
         frame = self._render(w, new_info.scene, new_info.pose, data)
         new_info = self._count_views(w, new_info, frame, ~done)
         metrics = episode_metrics(success, truncated, ended, frame.fallback)
-        return State(self._obs(w, frame, new_info), reward, success, truncated, metrics, new_info, data)
+        return State(self._obs(w, frame, new_info), reward, terminal, truncated, metrics, new_info, data)
+
+    def goal_reached(self, state: State, world: Optional[WorldArrays] = None):
+        """[B] bool: the success criterion holds now, so that a stop (`env.stop_action`)
+        would succeed: the view streak for goals that must be seen, else the pose."""
+        if self._seen:
+            return state.info.view_streak >= self.cfg.view_steps
+        info = state.info
+        return jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(self._world(world), info.scene, info.goal, info.pose)
 
     def with_data(self, state: State, world: Optional[WorldArrays] = None) -> State:
         """`state` with each environment's `mjx.Data` made anew from its scene and pose
@@ -507,8 +530,9 @@ def episode_metrics(success, truncated, ended: Info, fallback) -> dict:
 
 
 def action_names(cfg: EnvConfig) -> tuple[str, ...]:
-    """The names of the actions of the configured action set, in action-index order."""
-    return tuple(name for name, _ in ACTION_SETS[cfg.action_set])
+    """The names of the actions of the configured action set, in action-index order
+    (with `env.stop_action`, "stop" last)."""
+    return tuple(name for name, _ in ACTION_SETS[cfg.action_set]) + ("stop",) * cfg.stop_action
 
 
 def uniform_index(key, mask, block: int = 128):

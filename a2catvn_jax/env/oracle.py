@@ -9,7 +9,8 @@ forward that would follow it, and moves win ties, so it turns only to face a bet
 to the heading it should face (`oracle_yaw`: the target image's, or towards the object
 it should see) and then steps forward, which keeps that object in sight. Where no move
 brings it closer it acts at random, which frees it from the rare corner that a move of
-fixed length cannot leave. It never tilts the camera.
+fixed length cannot leave. It never tilts the camera. With `env.stop_action` it stops
+as soon as stopping succeeds (`NavEnv.goal_reached`).
 
 Its success rate is the ceiling of a task and its SPL checks the SPL computation: on
 image goals it follows the geodesic up to the motion noise and the moves' fixed length.
@@ -40,7 +41,10 @@ def oracle_actions(env: NavEnv, state: State, key, world: Optional[WorldArrays] 
     def act(scene, goal, pose, k):
         return steer(env, w, scene, pose, k, w.oracle_dist[scene, goal], w.oracle_yaw[scene, goal])[0]
 
-    return jax.vmap(act)(info.scene, info.goal, info.pose, keys)
+    action = jax.vmap(act)(info.scene, info.goal, info.pose, keys)
+    if env.stop_index is None:
+        return action
+    return jnp.where(env.goal_reached(state, w), env.stop_index, action).astype(jnp.int32)
 
 
 def steer(env: NavEnv, w: WorldArrays, scene, pose, key, field, heading):

@@ -9,6 +9,8 @@ acts as the oracle does there (steps forward, or back where that step left the l
 for `env.view_steps` + 1 steps, so that the environment's view criterion fires there when the
 room is of the target's type. Rooms with nothing that shows their type are never goals
 and are skipped. When every room has been looked into without success it starts over.
+With `env.stop_action`, where success must be declared, it cannot know where to stop
+and stops in the first room it has looked into: it guesses.
 
 It never reads the goal or the target image, so it succeeds by finding alone: its
 success rate and SPL are what a searcher that needs no recognition, only a map, reaches
@@ -109,6 +111,8 @@ def tour_actions(env: NavEnv, state: State, memory: Memory, key, rooms_: Rooms,
         dwell = jnp.where(settled | (dwell > 0), dwell + 1, 0)
         seen = dwell >= dwell_needed
         looked = looked.at[room].set(looked[room] | seen)
+        if env.stop_index is not None:
+            action = jnp.where(seen, env.stop_index, action).astype(jnp.int32)
         return action, looked, jnp.where(seen, -1, room), jnp.where(seen, 0, dwell)
 
     action, looked, room, dwell = jax.vmap(act)(info.scene, info.pose, memory.looked, memory.room, memory.dwell, keys)
