@@ -215,14 +215,15 @@ def test_with_a_stop_action_only_a_stop_at_the_goal_succeeds(goal):
     def body(state, key):
         k1, k2, k3 = jax.random.split(key, 3)
         random = jax.random.randint(k2, (B,), 0, env.num_actions)
-        action = jnp.where(jax.random.uniform(k3, (B,)) < 0.1, random, oracle_actions(env, state, k1))
+        oracle = oracle_actions(env, state, k1)
+        action = jnp.where(jax.random.uniform(k3, (B,)) < 0.1, random, oracle)
         nxt = env.step(state, action)
         return nxt, (env.goal_reached(state), action, nxt.terminated, nxt.truncated, nxt.metrics["success"],
-                     nxt.reward, state.info.pose, nxt.info.pose)
+                     nxt.reward, oracle)
 
     state = jax.jit(env.reset)(jax.random.PRNGKey(0))
     run = jax.jit(lambda s, k: jax.lax.scan(body, s, jax.random.split(k, 150)))
-    reached, action, terminated, truncated, success, reward, before, after = jax.device_get(
+    reached, action, terminated, truncated, success, reward, oracle = jax.device_get(
         run(state, jax.random.PRNGKey(1))[1])
     stopped = action == env.stop_index
     np.testing.assert_array_equal(terminated, stopped)
@@ -230,6 +231,7 @@ def test_with_a_stop_action_only_a_stop_at_the_goal_succeeds(goal):
     np.testing.assert_array_equal(reward, success.astype(np.float32))
     assert (reached & ~stopped).any()  # the goal reached without a stop: the episode goes on
     assert success.sum() >= B and (stopped & ~reached).any()  # successes and failed stops both occur
+    np.testing.assert_array_equal(oracle == env.stop_index, reached)  # the oracle stops exactly where that succeeds
 
 
 def test_baselines_with_a_stop_action():

@@ -89,7 +89,8 @@ def steer(env: NavEnv, w: WorldArrays, scene, pose, key, field, heading):
     score = jnp.where(reach < here, 2 * reach + walk, jnp.inf)  # only actions that make progress
     best = jnp.argmin(score)
     stuck = ~jnp.isfinite(score[best])
-    travel = jnp.where(stuck, jax.random.randint(key, (), 0, A), best)
+    moving = A - (env.stop_index is not None)  # a random move never stops
+    travel = jnp.where(stuck, jax.random.randint(key, (), 0, moving), best)
     # Where it should be: face the right way, then step forward.
     wanted = heading[cell(pose)]
     off = jnp.arctan2(jnp.sin(wanted - pose[2]), jnp.cos(wanted - pose[2]))
