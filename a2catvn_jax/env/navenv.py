@@ -146,7 +146,8 @@ class State:
 
     obs: `Observation`; reward [B] float32; terminated [B] bool (the step ended the
     episode in a terminal state: it reached the goal, or with `env.stop_action` the agent
-    stopped, successfully or not; `metrics["success"]` tells which); truncated [B] bool (the episode hit the time limit); info: `Info`;
+    stopped, successfully or not; `metrics["success"]` tells which); truncated [B] bool
+    (the episode hit the time limit); info: `Info`;
     data: each environment's `mjx.Data` of its scene (`mjx_world`): the agent's mocap
     body and camera at `info.pose`, the scene's bodies where the episode placed them.
     metrics (of the step just taken; episode_* are meaningful where `done`):

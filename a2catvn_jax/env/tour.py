@@ -122,4 +122,3 @@ def tour_actions(env: NavEnv, state: State, memory: Memory, key, rooms_: Rooms,
 def after_step(memory: Memory, done) -> Memory:
     """The memory of the agents whose episode ended (`done` [B]) cleared."""
     return Memory(memory.looked & ~done[:, None], jnp.where(done, -1, memory.room), jnp.where(done, 0, memory.dwell))
-
