@@ -648,6 +648,25 @@ def test_the_navigation_experiments_levers_and_the_presets_controls():
             == preset["navigation preset"].cfg
 
 
+def test_an_experiments_setting_is_every_variants_and_every_baselines_task():
+    """`Experiment.setting` overrides the configuration of every run and of the baselines:
+    declared_success trains the preset and its target-blind control with the stop action,
+    under run keys of their own, and says so in its section."""
+    exp = EXPERIMENTS["declared_success"]
+    runs = {r.variant.label: r for r in st.plan(exp, "cpu", [0], "/r")}
+    preset = {r.variant.label: r for r in st.plan(EXPERIMENTS["navigation_preset"], "cpu", [0], "/r")}
+    for label, run in runs.items():
+        assert run.cfg.env.stop_action
+        assert run.workdir != preset[label].workdir
+        without = dataclasses.replace(run.cfg, env=dataclasses.replace(run.cfg.env, stop_action=False))
+        assert without == preset[label].cfg
+    assert runs["target-blind navigation preset"].cfg.agent.blind == "target"
+    assert st.task_config(exp, "cpu").env.stop_action  # the baselines' environment
+    assert not st.task_config(EXPERIMENTS["navigation_preset"], "cpu").env.stop_action
+    plain = registry.Experiment("plain", "hand-made", "house_rooms", exp.variants)
+    assert st.plan(plain, "cpu", [0], "/r")[0].workdir == preset["navigation preset"].workdir
+
+
 def test_the_navigation_preset_is_the_preset_experiments_variant():
     """configs/presets/navigation.yaml holds what the navigation_preset experiment's
     "navigation preset" trains, so the preset is the configuration the evidence is for."""

@@ -1,7 +1,8 @@
 """The experiments: each a configuration of `configs/` and its variants, as data.
 
 `EXPERIMENTS` names each comparison: a configuration (`configs/NAME_cpu.yaml` or
-`configs/NAME.yaml` by scale, `Experiment.config_path`) and its variants (`Variant`:
+`configs/NAME.yaml` by scale, `Experiment.config_path`, with the overrides of its task,
+`Experiment.setting`) and its variants (`Variant`:
 configuration overrides, pre-training). The override constants (`NO_VN`, `NO_UNREAL`,
 `NO_RP`, `CLIP_40`, `BLIND`, `NAVIGATION`, `AUTHORS_LOSSES`, `AUTHORS_NETWORK`) are the settings the
 variants share. Nothing here reads or writes a file.
@@ -105,6 +106,7 @@ class Experiment:
     paper: str = ""  # what the paper reports for this comparison
     cpu_only: bool = False  # one configuration, configs/<config>.yaml, a CPU task at both scales
     held_out_points: int = 0  # evaluations in held-out houses during each run (train.eval), evenly spaced; 0: none
+    setting: tuple[str, ...] = ()  # overrides of the configuration that every variant and baseline shares (the task)
 
     def threshold_at(self, scale: str) -> float:
         return self.cpu_threshold if scale == "cpu" else self.threshold
@@ -232,6 +234,20 @@ EXPERIMENTS = {e.name: e for e in (
               "asked for), the observation-blind one with observations of zeros (it sees the goal, not where it "
               "is); the blind agent (both zeroed) and A2CAT-VN are the generalisation experiment's runs, with "
               "Table I's settings.",
+    ),
+    Experiment(
+        "declared_success", "the navigation preset where success must be declared with a stop action "
+        "(env.stop_action): recognising the goal, not only passing it", "house_rooms",
+        (Variant("navigation preset", NAVIGATION),
+         Variant("target-blind navigation preset", NAVIGATION + ("agent.blind=target",))),
+        held_out_points=5,
+        setting=("env.stop_action=true",),
+        paper="Not in the paper, whose episodes succeed when the agent looks at the goal's room, whether it "
+              "knows it or not. Here the last action stops the episode and only a stop where that criterion "
+              "holds succeeds, so a policy that tours the rooms without reading the goal succeeds only by "
+              "guessing (the tour stops in the first room it looks into). Both variants, the random policy, "
+              "the oracle and the tour run with the stop action; the target-blind control sees the house but "
+              "not which room is asked for.",
     ),
     Experiment(
         "clipping", "gradient-norm clipping with the auxiliary losses", "image_goals",

@@ -296,7 +296,8 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         f"### {exp.title} ({scale} scale)",
         "",
         f"Command: `{command}`  ",
-        f"Configuration: `configs/{exp.config_path(scale).name}`; variants: "
+        f"Configuration: `configs/{exp.config_path(scale).name}`"
+        + (f" with `{' '.join(exp.setting)}`" if exp.setting else "") + "; variants: "
         + "; ".join(f"{v.label}" + (f" (`{' '.join(v.overrides)}`)" if v.overrides else "")
                     + (" (pre-trained)" if v.pretrain and "pre-trained" not in v.label else "")
                     for v in exp.variants) + ".  ",
@@ -391,7 +392,7 @@ def listing(store=DEFAULT_STORE, scales: Sequence[str] = SCALES, names: Optional
             for v in exp.variants:
                 seeds = sorted(stored[v.label])
                 known |= set(stored[v.label].values())
-                what = " ".join(v.overrides) or "as configured"
+                what = " ".join((*exp.setting, *v.overrides)) or "as configured"
                 lines.append(f"  {scale:5s} {v.label}: {len(seeds)} stored"
                              f"{f' (seeds {seeds_text(seeds)})' if seeds else ''}"
                              f" [{keys[v]}: {what}{' + pre-training' if v.pretrain else ''}]")

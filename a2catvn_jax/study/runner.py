@@ -28,7 +28,6 @@ from typing import Callable, Optional, Sequence
 import jax
 
 from a2catvn_jax.agent.update import total_updates
-from a2catvn_jax.config import load_config
 from a2catvn_jax.errors import Interrupted
 from a2catvn_jax.run.evaluation import baselines_for, evaluate_baseline, evaluate_sets
 from a2catvn_jax.run.pretraining import PRETRAINED_DIR, pretrain
@@ -335,7 +334,7 @@ def report(exp: Experiment, runs: list[Run], opts: Options, not_stored: list[str
     experiment started, for the log)."""
     records = [st.run_record(run, evaluate_run(run, exp.evaluations, opts.episodes, skip_missing=opts.skip_missing,
                                                evaluate=opts.evaluate, log=log)) for run in runs]
-    base_cfg = load_config(exp.config_path(opts.scale), opts.overrides)
+    base_cfg = st.task_config(exp, opts.scale, opts.overrides)
     baseline = baselines(exp, opts.scale, base_cfg, exp.evaluations, opts.episodes, opts.store, log, opts.evaluate)
     summary = summarise(exp, records, baseline, opts.threshold_for(exp))
     used = sorted({n for v in summary["variants"].values() for e in v["eval"].values() for n in e["episodes"]

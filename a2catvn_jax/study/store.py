@@ -142,6 +142,12 @@ def curve_overrides(exp: Experiment, cfg, seed: int) -> list[str]:
             "train.eval.policies=[sample]", f"train.eval.seed={eval_seed(seed)}"]
 
 
+def task_config(exp: Experiment, scale: str, overrides: Sequence[str] = ()) -> Config:
+    """The configuration `exp`'s variants start from and its baselines run in: its
+    configuration file with its `setting` and `overrides`."""
+    return load_config(exp.config_path(scale), [*exp.setting, *overrides])
+
+
 def plan(exp: Experiment, scale: str, seeds: Sequence[int], root=DEFAULT_ROOT, overrides: Sequence[str] = (),
          store=DEFAULT_STORE) -> list[Run]:
     """The runs of `exp`: every variant with every seed, configurations checked (with
@@ -149,11 +155,12 @@ def plan(exp: Experiment, scale: str, seeds: Sequence[int], root=DEFAULT_ROOT, o
     path = exp.config_path(scale)
     runs = []
     for variant in exp.variants:
-        base = load_config(path, [*overrides, *variant.overrides])
+        base = load_config(path, [*exp.setting, *overrides, *variant.overrides])
         key = run_key(base, variant.pretrain)
         relative = Path(scale) / exp.config / key
         for seed in seeds:
-            cfg = load_config(path, [*overrides, *variant.overrides, f"seed={seed}", *curve_overrides(exp, base, seed)])
+            cfg = load_config(path, [*exp.setting, *overrides, *variant.overrides, f"seed={seed}",
+                                     *curve_overrides(exp, base, seed)])
             where = relative / f"seed_{seed}"
             runs.append(Run(variant, seed, cfg, Path(root) / where, Path(store) / where))
     return runs
