@@ -254,14 +254,13 @@ class NavEnv:
             terminal = jnp.asarray(action) == self.stop_index
             pose = select_where(terminal, info.pose, pose)  # a stop stays put, without motion noise
             moved = jnp.where(terminal, 0.0, moved)
-            success = terminal & (info.view_streak >= self.cfg.view_steps if self._seen else
-                                  jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose))
+            success = terminal & self._criterion(w, info, pose)
         elif self._seen:  # the streak up to the current observation decides; the move is not made
-            success = terminal = info.view_streak >= self.cfg.view_steps
+            success = terminal = self._criterion(w, info, pose)
             pose = select_where(success, info.pose, pose)
             moved = jnp.where(success, 0.0, moved)
-        else:
-            success = terminal = jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose)
+        else:  # the pose after the move decides
+            success = terminal = self._criterion(w, info, pose)
         step = info.step + 1
         truncated = (step >= self.cfg.max_episode_steps) & ~terminal
         done = terminal | truncated
@@ -286,10 +285,7 @@ class NavEnv:
     def goal_reached(self, state: State, world: Optional[WorldArrays] = None):
         """[B] bool: the success criterion holds now, so that a stop (`env.stop_action`)
         would succeed: the view streak for goals that must be seen, else the pose."""
-        if self._seen:
-            return state.info.view_streak >= self.cfg.view_steps
-        info = state.info
-        return jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(self._world(world), info.scene, info.goal, info.pose)
+        return self._criterion(self._world(world), state.info, state.info.pose)
 
     def with_data(self, state: State, world: Optional[WorldArrays] = None) -> State:
         """`state` with each environment's `mjx.Data` made anew from its scene and pose
@@ -391,6 +387,13 @@ class NavEnv:
             target_segmentation_rgb=self._colors[tseg],
             target_index=self.target_index(s, g),
         )
+
+    def _criterion(self, w: WorldArrays, info: Info, pose):
+        """[B] bool: the success criterion at `pose`: for goals that must be seen the view
+        streak up to the current observation (the pose is not used), else being at the goal."""
+        if self._seen:
+            return info.view_streak >= self.cfg.view_steps
+        return jax.vmap(self._at_goal, in_axes=(None, 0, 0, 0))(w, info.scene, info.goal, pose)
 
     def _in_region(self, w: WorldArrays, scene, goal, pose):
         i, j = rects.cell_of(pose[:2], w.grid_origin[scene], self.cfg.grid_resolution, w.free.shape[1:])

@@ -56,9 +56,15 @@ class Memory:
     dwell: jnp.ndarray
 
 
+def applies(cfg) -> bool:
+    """Whether the tour can run in an environment of configuration `cfg` (EnvConfig): its
+    goals are room types."""
+    return cfg.goal == "room"
+
+
 def check_goal(cfg) -> None:
-    """ValueError in one line unless the environment's goals are room types (`cfg`: EnvConfig)."""
-    if cfg.goal != "room":
+    """ValueError in one line unless the tour `applies` to `cfg` (EnvConfig)."""
+    if not applies(cfg):
         raise ValueError(f"the tour baseline visits rooms and needs room-type goals (env.goal=room), "
                          f"got env.goal={cfg.goal}")
 

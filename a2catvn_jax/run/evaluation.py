@@ -90,8 +90,8 @@ def _chunk_fn(env: NavEnv, networks: Optional[Networks], steps: int, policy: str
 
 
 def baselines_for(cfg) -> tuple[str, ...]:
-    """The baselines that apply to environment configuration `cfg` (the tour: room-type goals)."""
-    return tuple(p for p in BASELINES if p != "tour" or cfg.goal == "room")
+    """The baselines that apply to environment configuration `cfg` (the tour: `tour.applies`)."""
+    return tuple(p for p in BASELINES if p != "tour" or tour.applies(cfg))
 
 
 def _check(episodes: int, policy: str, video, video_episodes: int) -> None:

@@ -276,8 +276,9 @@ def evaluate_run(run: Run, houses: Sequence[str], episodes: int, policies: Seque
 def baselines(exp: Experiment, scale: str, cfg, houses: Sequence[str], episodes: int, store=DEFAULT_STORE,
               log: Log = lambda _: None, evaluate: bool = True) -> dict:
     """policy -> houses -> the result of each baseline (`BASELINE_LABELS`) that applies
-    (`evaluation.baselines_for`: the tour on room-type goals only) in the experiment's environment with `episodes` and seed `store.BASELINE_EVAL_SEED`, cached
-    in STORE/SCALE/CONFIG/baselines/. With `evaluate=False` one not stored falls back on
+    (`evaluation.baselines_for`: the tour on room-type goals only) in the experiment's
+    environment with `episodes` and seed `store.BASELINE_EVAL_SEED`, cached in
+    STORE/SCALE/CONFIG/baselines/. With `evaluate=False` one not stored falls back on
     the stored one with the most episodes (`store.stored_baselines`), else is None."""
     out: dict = {}
     seed = st.BASELINE_EVAL_SEED
