@@ -22,7 +22,8 @@ Experiments (`EXPERIMENTS`):
                   256 houses, new houses every 200k frames, 256 houses for 20M frames; and blind
   navigation_preset  configs/presets/navigation.yaml against Table I's settings, blind, target-blind and
                   observation-blind
-  declared_success  the preset and its target-blind control where success must be declared (env.stop_action)
+  declared_success  the preset, its target-blind control and the blind agent where success must be declared
+                  (env.stop_action)
   batch           B 16 against B 64 and 256 with Table I's settings and with LAMB and a sqrt-scaled learning rate
   clipping        A2CAT-VN with the gradient-norm clip of Table I (0.5) vs 40, and A2C
   grid            the grid action set on small rooms (A2CAT-VN vs A2C)

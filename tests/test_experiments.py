@@ -45,7 +45,7 @@ def test_every_experiment_has_both_configs_and_plans():
 
 def test_every_experiment_has_the_blind_control_of_its_task():
     # The configured agent on images of zeros, in every experiment: the same run (so the
-    # same work directory) wherever two experiments share a task.
+    # same work directory) wherever two experiments share a task (configuration and setting).
     blind_dirs = {}
     for exp in EXPERIMENTS.values():
         for scale in registry.SCALES:
@@ -53,8 +53,8 @@ def test_every_experiment_has_the_blind_control_of_its_task():
             assert [r.variant for r in controls] == [registry.BLIND_CONTROL], exp.name
             path = exp.config_path(scale)
             curves = st.curve_overrides(exp, controls[0].cfg, 0)  # what the run evaluates while it trains
-            assert controls[0].cfg == load_config(path, ["seed=0", "agent.blind=true", *curves])
-            assert blind_dirs.setdefault((scale, path), controls[0].workdir) == controls[0].workdir
+            assert controls[0].cfg == load_config(path, [*exp.setting, "seed=0", "agent.blind=true", *curves])
+            assert blind_dirs.setdefault((scale, path, exp.setting), controls[0].workdir) == controls[0].workdir
 
 
 def test_the_authors_variants_are_the_preset_and_the_documented_settings():
@@ -650,8 +650,8 @@ def test_the_navigation_experiments_levers_and_the_presets_controls():
 
 def test_an_experiments_setting_is_every_variants_and_every_baselines_task():
     """`Experiment.setting` overrides the configuration of every run and of the baselines:
-    declared_success trains the preset and its target-blind control with the stop action,
-    under run keys of their own, and says so in its section."""
+    declared_success trains the preset and its target-blind and blind controls with the
+    stop action, under run keys of their own."""
     exp = EXPERIMENTS["declared_success"]
     runs = {r.variant.label: r for r in st.plan(exp, "cpu", [0], "/r")}
     preset = {r.variant.label: r for r in st.plan(EXPERIMENTS["navigation_preset"], "cpu", [0], "/r")}
