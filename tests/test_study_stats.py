@@ -1,6 +1,7 @@
 """The statistics the experiment reports add beside the seed-level t-intervals
 (`study.stats`): Wilson's interval of success over pooled episodes, and frames to
-threshold as censored data (the Kaplan-Meier restricted mean, the log-rank test), each
+threshold as censored data (the Kaplan-Meier restricted mean, the log-rank test) and
+success by start distance, each
 against SciPy or NumPy computed independently, or against an example worked by hand."""
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from a2catvn_jax.study import formats, stats
+from a2catvn_jax.study import formats, report, stats
 
 
 @pytest.mark.parametrize("k, n", [(43, 100), (0, 100), (100, 100), (1, 3), (207, 500), (5, 7)])
@@ -46,6 +47,23 @@ def test_episode_successes_from_the_per_episode_list_else_the_rate():
     assert stats.episode_successes({"per_episode": {"success": [True, False, True]}, "success_rate": 0.0,
                                     "episodes": 3}) == 2
     assert stats.episode_successes({"success_rate": 0.4133, "episodes": 75}) == 31
+
+
+def test_success_by_distance_bands_the_pooled_episodes():
+    a = {"per_episode": {"success": [True, False, True, True], "start_distance": [0.5, 1.99, 2.0, 9.5]}}
+    b = {"per_episode": {"success": [False, True], "start_distance": [5.0, 7.9]}}
+    by = stats.success_by_distance([a, None, b, {"success_rate": 0.5, "episodes": 10}])
+    # bands [0, 2), [2, 4), [4, 6), [6, 8), [8, inf): a band's lower edge belongs to it
+    assert by == {"edges": [2.0, 4.0, 6.0, 8.0], "successes": [1, 1, 0, 1, 1], "episodes": [2, 1, 1, 1, 1]}
+    assert stats.success_by_distance([None, {"success_rate": 0.5, "episodes": 10}]) is None
+    summary = {"variants": {"v": {"eval": {"held-out": {"by_distance": by}}}, "w": {"eval": {}}},
+               "baselines": {"oracle": {"held-out": b}, "random": {}}}
+    assert report.distance_table(summary, "held-out").splitlines() == [
+        "| success, held-out houses, by start distance | 0–2 m | 2–4 m | 4–6 m | 6–8 m | 8 m or more |",
+        "|---|---|---|---|---|---|",
+        "| v | 0.50 (2) | 1.00 (1) | 0.00 (1) | 1.00 (1) | 1.00 (1) |",
+        "| shortest-path oracle | – | – | 0.00 (1) | 1.00 (1) | – |"]
+    assert report.distance_table(summary, "train") == ""
 
 
 def test_restricted_mean_by_hand():

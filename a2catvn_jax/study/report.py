@@ -2,7 +2,8 @@
 
 `plot` draws the learning curves of a summary (`stats.summarise`), `table` (training and
 sampled evaluation), `evaluation_table` (both policies, seed- and episode-level
-intervals), `evaluation_basis` (the episodes and seeds each evaluation number rests on)
+intervals), `distance_table` (success by the start's distance from the goal),
+`evaluation_basis` (the episodes and seeds each evaluation number rests on)
 and `section` write its markdown, `write_section` puts a section between its markers in
 results.md, and `listing` counts the seeds stored for each variant. The number formats
 are `formats`'s, shared with `compare`.
@@ -24,7 +25,8 @@ from matplotlib.ticker import EngFormatter
 
 from a2catvn_jax.study.formats import format_estimate, format_frames, format_pooled, format_rmst, frames_text, seeds_text
 from a2catvn_jax.study.registry import BASELINE_LABELS, BASELINE_STYLES, EVAL_SETS, EXPERIMENTS, SCALES, Experiment
-from a2catvn_jax.study.stats import FINAL_FRACTION, SMOOTH_FRACTION, episode_successes, pooled_success
+from a2catvn_jax.study.stats import (FINAL_FRACTION, SMOOTH_FRACTION, episode_successes, pooled_success,
+                                     success_by_distance)
 from a2catvn_jax.study.store import (BASELINE_DIR, CURVE_EPISODES, DEFAULT_STORE, DONE, LEGACY_EVAL_SEED, plan,
                                      stored_runs)
 
@@ -173,6 +175,32 @@ def evaluation_table(summary: dict, evaluations: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
+def _distance_cell(by: Optional[dict], band: int) -> str:
+    if by is None or by["episodes"][band] == 0:
+        return "–"
+    return f"{by['successes'][band] / by['episodes'][band]:.2f} ({by['episodes'][band]})"
+
+
+def distance_table(summary: dict, houses: str) -> str:
+    """Sampled success in `houses` by the geodesic distance from the start to the goal:
+    per variant over its episodes pooled across seeds, then the baselines; each cell the
+    rate and (the episodes in that band). Empty when no evaluation there has per-episode
+    distances."""
+    rows = [(label, (v.get("eval", {}).get(houses) or {}).get("by_distance")) for label, v in summary["variants"].items()]
+    rows += [(label, success_by_distance([summary["baselines"].get(policy, {}).get(houses)]))
+             for policy, label in _reported_baselines(summary, [houses])]
+    rows = [(label, by) for label, by in rows if by is not None]
+    if not rows:
+        return ""
+    edges = rows[0][1]["edges"]
+    bands = [f"{lo:g}–{hi:g} m" for lo, hi in zip([0.0, *edges[:-1]], edges)] + [f"{edges[-1]:g} m or more"]
+    lines = ["| " + " | ".join([f"success, {EVAL_SETS[houses]}, by start distance", *bands]) + " |",
+             "|" + "---|" * (len(bands) + 1)]
+    for label, by in rows:
+        lines.append("| " + " | ".join([label, *(_distance_cell(by, i) for i in range(len(bands)))]) + " |")
+    return "\n".join(lines)
+
+
 def _basis_text(key: tuple, offset: Optional[int]) -> str:
     episodes, seed = key
     return f"{episodes} episodes, " + (f"seed {offset} + the run's seed" if seed == "asked" else f"seed {seed}")
@@ -314,6 +342,7 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         "",
         evaluation_table(summary, evaluations),
         "",
+        *([distances, ""] if (distances := distance_table(summary, "held-out")) else []),
         ("One seed: each cell is that run's value, no interval" if max(map(len, seeds.values())) == 1 else
          "Each cell: the mean over the seeds and its 95% t-interval [low, high] (Student's t, n − 1 degrees of "
          "freedom, clipped to the possible range" + ("; a variant with one run: its value, no interval)" if n == 1
@@ -333,6 +362,11 @@ def section(exp: Experiment, scale: str, summary: dict, command: str, image: str
         f"seeds, with Wilson's 95% score interval, which takes the episodes as independent and so leaves out the "
         f"spread between seeds that the t-interval includes. Baselines, evaluated like the runs but with no "
         f"training: a {BASELINE_LABELS['random']} and the {BASELINE_LABELS['oracle']} (`env.oracle`)."
+        + (" By start distance (third table): sampled success in held-out houses over the episodes pooled across "
+           "seeds, in bands of the geodesic distance from the start to the goal's region (for a room-type goal, the "
+           "nearest room of that type; the distance SPL divides by), each cell the rate and, in brackets, the "
+           "episodes in that band."
+           if distance_table(summary, "held-out") else "")
         + _tour_text(summary)
         + _blind_text(exp)
         + f" Curves: the mean over seeds of the running mean, shaded with its 95% t-band; dotted: the threshold; "

@@ -5,7 +5,8 @@ Means over seeds with Student's t-intervals (`t_interval`, `estimate`), Welch's 
 (`wilson_interval`), the smoothed learning curves of a training log (`curves`), frames to
 a success threshold, with the runs that never reach it censored at their last frame:
 the Kaplan-Meier restricted mean (`restricted_mean`) and the log-rank test
-(`logrank_p`); final training success and its late change, and `summarise`, which turns
+(`logrank_p`); success by the start's distance from the goal (`success_by_distance`);
+final training success and its late change, and `summarise`, which turns
 the runs of an experiment (`RunRecord`s, read by the caller) into the summary every
 report is made from. NumPy and SciPy only: nothing here reads or writes a file.
 """
@@ -27,6 +28,7 @@ SMOOTH_FRACTION = 0.1  # curves are running means over this fraction of a run's 
 FINAL_FRACTION = 0.1  # "final" training success: the mean over this last fraction of the rows
 CONFIDENCE = 0.95  # of the t-intervals, Wilson's intervals and the restricted means' intervals
 EVAL_POLICIES = ("sample", "greedy")  # the policies every run is evaluated with
+DISTANCE_EDGES = (2.0, 4.0, 6.0, 8.0)  # metres: success by start distance in [0, 2), [2, 4), ... [8, inf)
 
 
 def standard_error(values: np.ndarray, axis: int = 0) -> np.ndarray:
@@ -249,9 +251,29 @@ def episode_successes(result: dict) -> int:
     return int(round(result["success_rate"] * result["episodes"]))
 
 
+def success_by_distance(results: Sequence[Optional[dict]]) -> Optional[dict]:
+    """Success over the episodes of `results` pooled (None entries left out), in bands of
+    the geodesic start-to-goal distance (`DISTANCE_EDGES`): {"edges", "successes",
+    "episodes"}, one count per band; None when no result has per-episode distances."""
+    success, distance = [], []
+    for r in results:
+        per_episode = (r or {}).get("per_episode") or {}
+        if per_episode.get("start_distance") is not None and per_episode.get("success") is not None:
+            success += [bool(s) for s in per_episode["success"]]
+            distance += [float(d) for d in per_episode["start_distance"]]
+    if not success:
+        return None
+    band = np.searchsorted(np.asarray(DISTANCE_EDGES), np.asarray(distance), side="right")
+    bands = len(DISTANCE_EDGES) + 1
+    return {"edges": list(DISTANCE_EDGES),
+            "successes": np.bincount(band, weights=np.asarray(success, float), minlength=bands).astype(int).tolist(),
+            "episodes": np.bincount(band, minlength=bands).tolist()}
+
+
 def evaluation_entry(results: Sequence[Optional[dict]]) -> dict:
     """Per run (None: not evaluated): success rate, SPL, episodes, successes and the
-    evaluation seed; and "pooled", success over all their episodes (`pooled_success`)."""
+    evaluation seed; "pooled", success over all their episodes (`pooled_success`); and
+    "by_distance", that success by start distance (`success_by_distance`)."""
     def field(fn):
         return [None if r is None else fn(r) for r in results]
 
@@ -259,6 +281,7 @@ def evaluation_entry(results: Sequence[Optional[dict]]) -> dict:
              "episodes": field(lambda r: int(r["episodes"])), "successes": field(episode_successes),
              "eval_seed": field(lambda r: r.get("seed"))}
     entry["pooled"] = pooled_success(entry["successes"], entry["episodes"])
+    entry["by_distance"] = success_by_distance(results)
     return entry
 
 
